@@ -1,0 +1,24 @@
+# The two commands of the README. Each creates .venv and installs what it needs
+# (no system packages: Dr.Jit's LLVM comes from the karellen-llvm-core wheel).
+PYTHON ?= python3
+VENV   ?= .venv
+BIN     = $(VENV)/bin
+
+.PHONY: render test clean
+
+# Main job (for now): render the bundled Cornell box with both estimators.
+render: $(VENV)/.installed
+	$(BIN)/mcillum render scenes/cornell_box.xml --integrator cosine_hemisphere --spp 64 -o out/cornell_box_cosine.exr
+	$(BIN)/mcillum render scenes/cornell_box.xml --integrator uniform_hemisphere --spp 64 -o out/cornell_box_uniform.exr
+
+test: $(VENV)/.installed
+	$(BIN)/python -m pytest
+
+$(VENV)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[test]'
+	touch $@
+
+clean:
+	rm -rf $(VENV) out .pytest_cache
