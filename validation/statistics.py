@@ -1,0 +1,131 @@
+"""Is an estimator unbiased? Batch-means tests against a reference.
+
+Both sides are given as independent renders (different seeds): K images of the
+estimator, M of the reference. Each render is itself a mean over spp samples,
+so by the central limit theorem it is close to normal even where single
+samples are heavy-tailed; the spread over renders measures each side's *own*
+variance. (Mitsuba's render test uses the reference integrator's variance for
+both sides, which wrongly rejects correct hemisphere estimators.)
+
+Per pixel (channel mean), Welch's t statistic
+
+    t = (ȳ_est − ȳ_ref) / sqrt(s²_est/K + s²_ref/M)
+
+with Welch–Satterthwaite degrees of freedom gives a two-sided p-value. The
+pooled test does the same on the image mean of each render.
+
+Error budget: total α (default 0.01), split by Bonferroni into α/2 for the
+pooled test and α/2 for the per-pixel family, which is Šidák-corrected over
+the P tested pixels: α_px = 1 − (1 − α/2)^(1/P). The estimator passes when no
+pixel has p < α_px and the pooled p ≥ α/2. Under the null hypothesis it fails
+with probability ≤ α.
+
+Pixels where both sides have zero variance (constant radiance) are exact:
+they pass if the means agree to float32 rounding and fail otherwise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import stats
+
+#: Default family-wise significance level of :func:`compare`.
+ALPHA = 0.01
+
+#: Relative tolerance for "equal" zero-variance pixels (float32 rounding).
+EXACT_RTOL = 1e-5
+
+
+@dataclass
+class Comparison:
+    """Outcome of :func:`compare` (p-values are two-sided)."""
+
+    alpha: float
+    alpha_pixel: float       # Šidák-corrected per-pixel level
+    n_pixels: int
+    pixel_p: np.ndarray      # (H, W) per-pixel p-values
+    pixel_t: np.ndarray      # (H, W) per-pixel t statistics
+    pass_fraction: float     # fraction of pixels with p >= alpha_pixel
+    min_p: float
+    pooled_t: float
+    pooled_p: float
+    passed: bool
+
+    def summary(self) -> str:
+        verdict = "PASS" if self.passed else "FAIL"
+        return (f"{verdict}: {self.pass_fraction:.2%} of {self.n_pixels} pixels pass "
+                f"at Šidák α_px={self.alpha_pixel:.2e} (min p={self.min_p:.2e}); "
+                f"pooled t={self.pooled_t:+.2f}, p={self.pooled_p:.3g} (α/2={self.alpha / 2})")
+
+
+def welch(mean_a, var_a, n_a, mean_b, var_b, n_b):
+    """Welch's two-sample t-test from means and sample variances.
+
+    Returns (t, p). Where both variances are zero, p is 1 if the means agree
+    to :data:`EXACT_RTOL` and 0 otherwise (t is then 0 or ±inf).
+    """
+    mean_a, var_a, mean_b, var_b = (np.asarray(x, np.float64)
+                                    for x in (mean_a, var_a, mean_b, var_b))
+    va, vb = var_a / n_a, var_b / n_b
+    se2 = va + vb
+    diff = mean_a - mean_b
+    exact = se2 <= 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(exact, 0.0, diff / np.sqrt(se2))
+        df = np.where(exact, 1.0, se2 ** 2 / (va ** 2 / (n_a - 1) + vb ** 2 / (n_b - 1)))
+    p = 2 * stats.t.sf(np.abs(t), df)
+    scale = np.maximum(np.abs(mean_a), np.abs(mean_b))
+    same = np.abs(diff) <= EXACT_RTOL * np.maximum(scale, 1e-30)
+    t = np.where(exact & ~same, np.copysign(np.inf, diff), t)
+    p = np.where(exact, np.where(same, 1.0, 0.0), p)
+    return t, p
+
+
+def batch_moments(renders: np.ndarray):
+    """Mean and unbiased sample variance over axis 0 of a stack of renders."""
+    renders = np.asarray(renders, np.float64)
+    if renders.shape[0] < 2:
+        raise ValueError("need at least 2 independent renders per side")
+    return renders.mean(axis=0), renders.var(axis=0, ddof=1), renders.shape[0]
+
+
+def compare(estimator: np.ndarray, reference: np.ndarray, alpha: float = ALPHA,
+            mask: np.ndarray | None = None) -> Comparison:
+    """Test that ``estimator`` and ``reference`` renders have equal means.
+
+    Both are stacks of independent renders, shape (n, H, W, C). ``mask``
+    (H, W) selects the pixels to test (default: all).
+    """
+    est = np.asarray(estimator, np.float64).mean(axis=-1)  # channel mean
+    ref = np.asarray(reference, np.float64).mean(axis=-1)
+    if est.shape[1:] != ref.shape[1:]:
+        raise ValueError(f"image sizes differ: {est.shape[1:]} vs {ref.shape[1:]}")
+    if not (np.isfinite(est).all() and np.isfinite(ref).all()):
+        raise ValueError("renders contain NaN or Inf")
+    mask = np.ones(est.shape[1:], bool) if mask is None else np.asarray(mask, bool)
+
+    t, p = welch(*batch_moments(est), *batch_moments(ref))
+    n_pixels = int(mask.sum())
+    alpha_pixel = 1.0 - (1.0 - alpha / 2) ** (1.0 / n_pixels)
+    tested = p[mask]
+
+    # Pooled: the mean over the tested pixels, one value per render.
+    pooled_t, pooled_p = welch(*batch_moments(est[:, mask].mean(axis=1)),
+                               *batch_moments(ref[:, mask].mean(axis=1)))
+    pooled_t, pooled_p = float(pooled_t), float(pooled_p)
+
+    passed = bool(tested.min() >= alpha_pixel and pooled_p >= alpha / 2)
+    return Comparison(alpha, alpha_pixel, n_pixels, np.where(mask, p, np.nan),
+                      np.where(mask, t, np.nan), float((tested >= alpha_pixel).mean()),
+                      float(tested.min()), pooled_t, pooled_p, passed)
+
+
+def mean_interval(values: np.ndarray, alpha: float = ALPHA):
+    """Mean of independent ``values`` and the half-width of its two-sided
+    (1 − α) Student-t confidence interval."""
+    values = np.asarray(values, np.float64)
+    n = values.size
+    half = stats.t.ppf(1 - alpha / 2, n - 1) * values.std(ddof=1) / np.sqrt(n)
+    return float(values.mean()), float(half)
