@@ -1,0 +1,103 @@
+"""Closed-form answers: the furnace sphere and the emitting interior furnace.
+
+Bound: over K independent renders (seeds) the per-render mean over the tested
+pixels has a Student-t confidence interval at α = 0.001 (two-sided); the exact
+value must lie inside it, widened only by float32 rounding (1e-5 relative),
+which is all that is left where an estimator has zero variance (the cosine
+estimator on a diffuse surface: f cos/p = ρ exactly). Each test has a negative
+twin: the same check on an estimator whose pdf is 5% off must fail.
+"""
+
+import numpy as np
+import pytest
+
+from validation import renders, statistics
+
+from conftest import ESTIMATORS, SCENES, batch, small, wrong_pdf_integrator
+
+ALPHA = 0.001
+FLOAT_RTOL = 1e-5
+ALBEDO, RADIANCE = 0.5, 1.5
+
+
+def within_bound(values, exact):
+    """Is ``exact`` inside the (1−α) interval of the mean of ``values``?"""
+    mean, half = statistics.mean_interval(values, ALPHA)
+    return abs(mean - exact) <= half + FLOAT_RTOL * abs(exact), (mean, half)
+
+
+def disk_masks(res: int, half_width: float = 1.25, radius: float = 1.0):
+    """Pixels whose whole footprint is inside / outside the sphere's disk
+    (orthographic camera spanning [-half_width, half_width]^2)."""
+    edges = np.linspace(-half_width, half_width, res + 1)
+    x0, x1 = np.meshgrid(edges[:-1], edges[:-1]), np.meshgrid(edges[1:], edges[1:])
+    corners = [np.hypot(a, b) for a in (x0[0], x1[0]) for b in (x0[1], x1[1])]
+    inside = np.max(corners, axis=0) < radius
+    nearest = np.hypot(np.clip(0, x0[0], x1[0]), np.clip(0, x0[1], x1[1]))
+    outside = nearest > radius
+    return inside, outside
+
+
+def furnace_sphere(variant, integrator, max_depth):
+    res = small(variant, 8, 24)
+    scene = renders.load_scene(SCENES / "furnace_sphere.xml", res=res,
+                               albedo=ALBEDO, radiance=RADIANCE)
+    k, spp = small(variant, 6, 12), small(variant, 4, 16)
+    if isinstance(integrator, str):
+        integrator = renders.make_integrator(integrator, {"max_depth": max_depth})
+    images = batch(scene, integrator, spp, k).mean(axis=-1)
+    inside, outside = disk_masks(res)
+    assert inside.sum() > 0 and outside.sum() > 0
+    return images[:, inside].mean(axis=1), images[:, outside]
+
+
+@pytest.mark.parametrize("max_depth", [2, 3, -1])
+@pytest.mark.parametrize("name", ESTIMATORS)
+def test_furnace_sphere_is_albedo_times_radiance(variant, name, max_depth):
+    sphere, background = furnace_sphere(variant, name, max_depth)
+    ok, (mean, half) = within_bound(sphere, ALBEDO * RADIANCE)
+    assert ok, f"sphere: {mean:.6f} ± {half:.2e}, exact {ALBEDO * RADIANCE}"
+    # Background pixels see the environment directly: exactly L, every sample.
+    np.testing.assert_allclose(background, RADIANCE, rtol=FLOAT_RTOL)
+
+
+def test_furnace_sphere_rejects_wrong_pdf(variant):
+    sphere, _ = furnace_sphere(variant, wrong_pdf_integrator("cosine_hemisphere"), -1)
+    ok, (mean, half) = within_bound(sphere, ALBEDO * RADIANCE)
+    assert not ok, f"pdf x1.05 passed: {mean:.6f} ± {half:.2e}"
+
+
+def interior_exact(max_depth: int, albedo: float, emission: float) -> float:
+    """L = Le Σ_{k<d} a^k for max_depth d; Le / (1 − a) when unbounded."""
+    if max_depth == -1:
+        return emission / (1 - albedo)
+    return emission * sum(albedo ** k for k in range(max_depth))
+
+
+def furnace_interior(variant, integrator, max_depth, albedo):
+    scene = renders.load_scene(SCENES / "furnace_interior.xml", res=small(variant, 4, 16),
+                               albedo=albedo, emission=RADIANCE)
+    if isinstance(integrator, str):
+        integrator = renders.make_integrator(integrator, {"max_depth": max_depth})
+    k, spp = small(variant, 6, 12), small(variant, 8, 32)
+    return batch(scene, integrator, spp, k).mean(axis=(1, 2, 3))
+
+
+@pytest.mark.parametrize("max_depth", [1, 2, 5, 8, -1])
+@pytest.mark.parametrize("name", ESTIMATORS)
+def test_interior_furnace_closed_form(variant, name, max_depth):
+    """Depth convention, recursion and Russian roulette (rr_depth 5) at once."""
+    albedo = 0.6
+    values = furnace_interior(variant, name, max_depth, albedo)
+    exact = interior_exact(max_depth, albedo, RADIANCE)
+    ok, (mean, half) = within_bound(values, exact)
+    assert ok, f"{mean:.6f} ± {half:.2e}, exact {exact:.6f}"
+
+
+@pytest.mark.parametrize("name", ESTIMATORS)
+def test_interior_furnace_rejects_wrong_pdf(variant, name):
+    if name == "uniform_hemisphere" and variant.startswith("scalar"):
+        pytest.skip("scalar images are too small to resolve 5% under uniform noise")
+    values = furnace_interior(variant, wrong_pdf_integrator(name), -1, 0.6)
+    ok, (mean, half) = within_bound(values, interior_exact(-1, 0.6, RADIANCE))
+    assert not ok, f"pdf x1.05 passed: {mean:.6f} ± {half:.2e}"
