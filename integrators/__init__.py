@@ -23,6 +23,8 @@ _llvm.configure()  # must precede the first `import drjit` in the process
 
 import mitsuba as mi  # noqa: E402  (after the LLVM set-up on purpose)
 
+from .scene_checks import UnreachableContentError  # noqa: E402,F401  (variant-free)
+
 #: Registered plugin name → module (inside this package) that defines it.
 PLUGINS = {
     "uniform_hemisphere": "uniform_hemisphere",
@@ -30,8 +32,8 @@ PLUGINS = {
 }
 
 #: Modules whose classes derive from a variant's types, in reload order:
-#: shared bases first, then the plugins that subclass them.
-_VARIANT_MODULES = ("scene_checks", "estimator", *dict.fromkeys(PLUGINS.values()))
+#: the shared base first, then the plugins that subclass it.
+_VARIANT_MODULES = ("estimator", *dict.fromkeys(PLUGINS.values()))
 
 _registered_for: str | None = None
 

@@ -38,11 +38,15 @@ UNBOUNDED = 0xFFFFFFFF
 def read_depths(props: mi.Properties) -> tuple[int, int]:
     """Read ``max_depth`` and ``rr_depth`` with Mitsuba's defaults and checks."""
     max_depth = props.get("max_depth", -1)
+    rr_depth = props.get("rr_depth", 5)
+    for name, value in (("max_depth", max_depth), ("rr_depth", rr_depth)):
+        if not isinstance(value, int) or isinstance(value, bool):
+            raise TypeError(f"{name} must be an integer (<integer name=\"{name}\" "
+                            f"value=\"...\"/>), got {type(value).__name__} {value!r}")
     if max_depth < -1:
         raise ValueError(
             f"max_depth = {max_depth} is invalid: use -1 (unbounded), 1 (emitters "
             "seen directly), 2 (direct illumination) or a larger path length")
-    rr_depth = props.get("rr_depth", 5)
     if rr_depth <= 0:
         raise ValueError(
             f"rr_depth = {rr_depth} is invalid: Russian roulette starts at a "

@@ -81,7 +81,9 @@ def _bsdf_problems(shape) -> list[Problem]:
     flags = bsdf.flags()
     owner = f"shape {_name(shape)} with BSDF {_name(bsdf)} ({bsdf.class_name()})"
     out = []
-    if mi.has_flag(flags, mi.BSDFFlags.Delta):
+    # (BSDFFlags.Delta also contains Null, which is pass-through, not specular)
+    if (mi.has_flag(flags, mi.BSDFFlags.DeltaReflection)
+            or mi.has_flag(flags, mi.BSDFFlags.DeltaTransmission)):
         out.append(Problem(
             "delta_bsdf", f"{owner} has a perfectly specular (delta) lobe",
             "use a rough variant (roughconductor, roughdielectric, roughplastic "

@@ -1,0 +1,96 @@
+"""`mcillum render`: outputs, metadata and exit codes."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from validation import cli, images
+
+from conftest import SCENES
+
+CORNELL = str(SCENES / "cornell_box.xml")
+
+
+def test_render_writes_exr_with_metadata_and_png(llvm, tmp_path):
+    out = tmp_path / "cb.exr"
+    code = cli.main(["render", CORNELL, "--integrator", "cosine_hemisphere", "--spp", "4",
+                     "--seed", "7", "-p", "max_depth=2", "-D", "res=12",
+                     "--variant", "llvm_ad_rgb", "-o", str(out)])
+    assert code == 0
+    image, meta = images.read_exr(out)
+    assert image.shape == (12, 12, 3) and image.dtype == np.float32
+    assert np.isfinite(image).all() and image.max() > 0
+    assert meta["integrator"] == "cosine_hemisphere" and meta["params"] == "max_depth=2"
+    assert meta["spp"] == 4 and meta["seed"] == 7 and meta["variant"] == "llvm_ad_rgb"
+    assert meta["mitsuba_version"].startswith("3.9") and meta["drjit_version"].startswith("1.5")
+    assert meta["render_seconds"] > 0
+    png = out.with_suffix(".png")
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".partial-")]
+
+
+def test_render_in_scalar_variant(tmp_path):
+    out = tmp_path / "s.exr"
+    assert cli.main(["render", CORNELL, "-i", "uniform_hemisphere", "--spp", "2",
+                     "-D", "res=3", "--variant", "scalar_rgb", "-o", str(out)]) == 0
+    assert images.read_exr(out)[1]["variant"] == "scalar_rgb"
+
+
+@pytest.mark.parametrize("args, message", [
+    (["-i", "cosine_hemisphere", "-p", "foo=1"], "foo"),
+    (["-i", "no_such_integrator"], "no_such_integrator"),
+    (["-i", "cosine_hemisphere", "-p", "max_depth=-5"], "max_depth = -5 is invalid"),
+])
+def test_render_errors_exit_1_with_the_cause(llvm, tmp_path, capsys, args, message):
+    out = tmp_path / "x.exr"
+    assert cli.main(["render", CORNELL, *args, "-o", str(out)]) == 1
+    assert message in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_refused_scene_exits_1_naming_the_light(llvm, tmp_path, capsys):
+    out = tmp_path / "x.exr"
+    code = cli.main(["render", str(SCENES / "point_light.xml"), "-i", "cosine_hemisphere",
+                     "-o", str(out)])
+    err = capsys.readouterr().err
+    assert code == 1 and "'key_light' (PointLight)" in err and "'path'" in err
+    assert not out.exists() and not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("args", [
+    ["render", CORNELL, "-i", "cosine_hemisphere", "-o", "x.png"],
+    ["render", CORNELL, "-i", "cosine_hemisphere", "--spp", "0", "-o", "x.exr"],
+    ["render", CORNELL, "-i", "cosine_hemisphere", "-p", "novalue", "-o", "x.exr"],
+    ["render", CORNELL, "-i", "cosine_hemisphere", "-o", "/nonexistent/dir/x.exr"],
+    ["render", CORNELL, "-o", "x.exr"],
+    ["frobnicate"],
+])
+def test_usage_errors_exit_2(args):
+    with pytest.raises(SystemExit) as info:
+        cli.main(args)
+    assert info.value.code == 2
+
+
+def test_missing_scene_exits_1(tmp_path, capsys):
+    code = cli.main(["render", str(tmp_path / "nope.xml"), "-i", "cosine_hemisphere",
+                     "-o", str(tmp_path / "x.exr")])
+    assert code == 1 and "scene file not found" in capsys.readouterr().err
+
+
+def test_console_script_is_installed():
+    result = subprocess.run([sys.executable, "-m", "validation.cli", "--help"],
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0 and "render" in result.stdout
+
+
+def test_committed_sky_matches_its_generator():
+    import os
+
+    from envmaps import __main__ as generated
+
+    here = os.path.dirname(generated.__file__)
+    for name, make in generated.COMMITTED.items():
+        stored, _ = images.read_exr(os.path.join(here, name))
+        np.testing.assert_array_equal(stored, make())
