@@ -41,7 +41,74 @@ def _parser() -> argparse.ArgumentParser:
                    help="exposure of the PNG preview in stops (default 0)")
     r.add_argument("--output", "-o", required=True, help="output .exr path")
     r.set_defaults(run=_render)
+
+    b = sub.add_parser(
+        "bench", help="time integrators against each other on one scene",
+        description="Render SCENE once per integrator (compile), then RUNS interleaved "
+                    "warm rounds; print median warm times and ratios to the first "
+                    "integrator, and optionally write them as JSON.")
+    b.add_argument("scene", help="Mitsuba 3 XML scene file")
+    b.add_argument("--integrators", default="path,uniform_hemisphere,cosine_hemisphere",
+                   help="comma-separated plugin names; ratios are to the first "
+                        "(default path,uniform_hemisphere,cosine_hemisphere)")
+    b.add_argument("--spp", type=int, default=64, help="samples per pixel (default 64)")
+    b.add_argument("--runs", type=int, default=5, help="warm rounds (default 5)")
+    b.add_argument("--param", "-p", action="append", default=[], metavar="K=V",
+                   help="property given to every integrator, e.g. max_depth=8")
+    b.add_argument("--define", "-D", action="append", default=[], metavar="K=V",
+                   help="scene $-parameter, e.g. res=256")
+    b.add_argument("--variant", default=None, help="Mitsuba variant")
+    b.add_argument("--json", default=None, metavar="FILE", help="also write results here")
+    b.set_defaults(run=_bench)
     return parser
+
+
+def _bench(args) -> int:
+    import json
+    import platform
+
+    from . import images, renders, timing
+
+    if args.spp < 1 or args.runs < 1:
+        raise _Usage("--spp and --runs must be >= 1")
+    try:
+        params = renders.parse_assignments(args.param)
+        defines = renders.parse_assignments(args.define)
+    except ValueError as e:
+        raise _Usage(str(e)) from None
+    names = [n.strip() for n in args.integrators.split(",") if n.strip()]
+    if not names:
+        raise _Usage("--integrators is empty")
+
+    variant = renders.set_variant(args.variant)
+    scene = renders.load_scene(args.scene, **defines)
+    integrators = {n: renders.make_integrator(n, params) for n in names}
+    times = timing.alternate(scene, integrators, args.spp, args.runs)
+
+    base = times[names[0]].median
+    w, h = (int(x) for x in scene.sensors()[0].film().crop_size())
+    rows = []
+    for n in names:
+        t = times[n]
+        rows.append({"integrator": n, "first_seconds": t.first_seconds,
+                     "warm_seconds": t.warm_seconds, "median_seconds": t.median,
+                     "ratio_to_first": t.median / base,
+                     "samples_per_second": w * h * args.spp / t.median})
+        print(f"{n:>22}: median {t.median:.4f} s over {len(t.warm_seconds)} warm runs "
+              f"(first {t.first_seconds:.3f} s), {t.median / base:.2f}x {names[0]}, "
+              f"{rows[-1]['samples_per_second'] / 1e6:.2f} Msamples/s")
+    if args.json:
+        import drjit as dr
+        import mitsuba as mi
+
+        report = {"scene": os.path.abspath(args.scene), "defines": defines,
+                  "params": params, "spp": args.spp, "resolution": [w, h],
+                  "variant": variant, "mitsuba_version": mi.__version__,
+                  "drjit_version": dr.__version__, "machine": platform.platform(),
+                  "cpus": os.cpu_count(), "results": rows}
+        with images.atomic_path(args.json) as tmp, open(tmp, "w") as f:
+            json.dump(report, f, indent=2)
+    return EXIT_OK
 
 
 def _render(args) -> int:
