@@ -8,8 +8,10 @@ BIN     = $(VENV)/bin
 
 # Main job (for now): render the bundled Cornell box with both estimators.
 render: $(VENV)/.installed
-	$(BIN)/mcillum render scenes/cornell_box.xml --integrator cosine_hemisphere --spp 64 -o out/cornell_box_cosine.exr
-	$(BIN)/mcillum render scenes/cornell_box.xml --integrator uniform_hemisphere --spp 64 -o out/cornell_box_uniform.exr
+	mkdir -p out
+	$(BIN)/mcillum render scenes/cornell_box.xml --integrator cosine_hemisphere --spp 64 -D res=256 -o out/cornell_box_cosine.exr
+	$(BIN)/mcillum render scenes/cornell_box.xml --integrator uniform_hemisphere --spp 64 -D res=256 -o out/cornell_box_uniform.exr
+	$(BIN)/mcillum render scenes/cornell_box.xml --integrator path --spp 64 -D res=256 -o out/cornell_box_path.exr
 
 test: $(VENV)/.installed
 	$(BIN)/python -m pytest
