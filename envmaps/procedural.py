@@ -1,49 +1,178 @@
 """Deterministic procedural environment maps (float32 RGB, Mitsuba latlong).
 
-Each generator returns an ``(height, width, 3)`` float32 array; :func:`write`
-stores it as an OpenEXR file that Mitsuba's ``envmap`` emitter reads.
+Each generator returns an ``(height, width, 3)`` float32 array in Mitsuba's
+``envmap`` convention (y up; pixel (u, v) = (φ/2π, θ/π) looks along
+(sinφ sinθ, cosθ, −cosφ sinθ)). Pixel values are box-filtered over
+``supersample``² sub-pixel directions, so hard edges (cap, checker) keep their
+solid angle; the closed forms in the docstrings hold for the continuous map,
+and :func:`irradiance` measures how far a discrete map is from them.
 """
 
 from __future__ import annotations
 
 import os
-import tempfile
 
 import numpy as np
 
+#: Default resolution of generated maps (Mitsuba envmaps are 2:1).
+WIDTH, HEIGHT = 512, 256
 
-def directions(width: int, height: int) -> np.ndarray:
-    """Unit direction at each pixel centre, shape (height, width, 3), y up."""
-    phi = (np.arange(width) + 0.5) / width * 2 * np.pi
-    theta = (np.arange(height) + 0.5) / height * np.pi
-    phi, theta = np.meshgrid(phi, theta)
-    return np.stack([np.sin(phi) * np.sin(theta), np.cos(theta),
-                     -np.cos(phi) * np.sin(theta)], axis=-1)
+
+def directions(width: int, height: int, supersample: int = 1) -> np.ndarray:
+    """Unit directions (height, width, s², 3): ``s × s`` sub-pixel samples per
+    pixel (s = ``supersample``), stratified; y up, Mitsuba's latlong mapping."""
+    return _band(width, height, 0, height, supersample)
+
+
+def bake(radiance, width: int = WIDTH, height: int = HEIGHT,
+         supersample: int = 4) -> np.ndarray:
+    """Box-filter ``radiance(d: (..., 3)) -> (..., 3)`` over each pixel
+    (in bands of rows, so memory stays bounded at high ``supersample``)."""
+    out = np.empty((height, width, 3), np.float32)
+    band = max(1, 2 ** 22 // (width * supersample * supersample))
+    for top in range(0, height, band):
+        rows = min(band, height - top)
+        d = _band(width, height, top, rows, supersample)
+        out[top:top + rows] = np.asarray(radiance(d), np.float64).mean(axis=2)
+    return out
+
+
+def _band(width, height, top, rows, supersample):
+    """Sub-pixel directions of rows [top, top + rows) (see :func:`directions`)."""
+    s = supersample
+    offsets = (np.arange(s) + 0.5) / s
+    u = (np.arange(width)[:, None] + offsets[None, :]).reshape(-1) / width
+    v = (np.arange(top, top + rows)[:, None] + offsets[None, :]).reshape(-1) / height
+    phi, theta = np.meshgrid(u * 2 * np.pi, v * np.pi)
+    d = np.stack([np.sin(phi) * np.sin(theta), np.cos(theta),
+                  -np.cos(phi) * np.sin(theta)], axis=-1)
+    d = d.reshape(rows, s, width, s, 3).transpose(0, 2, 1, 3, 4)
+    return d.reshape(rows, width, s * s, 3)
+
+
+def _rgb(value) -> np.ndarray:
+    return np.broadcast_to(np.asarray(value, np.float64), (3,)).copy()
+
+
+def _unit(v) -> np.ndarray:
+    v = np.asarray(v, np.float64)
+    n = np.linalg.norm(v)
+    if not n > 0:
+        raise ValueError(f"direction must be non-zero, got {v.tolist()}")
+    return v / n
 
 
 def constant(radiance=1.0, width: int = 8, height: int = 4) -> np.ndarray:
     """Uniform radiance L everywhere (a furnace).
 
-    Irradiance on any plane: E = π·L; a convex diffuse object of albedo ρ has
-    exitant radiance ρ·L everywhere.
+    Closed forms: irradiance on any plane E = π·L; total ∫ L dω = 4π·L; a
+    convex diffuse object of albedo ρ has exitant radiance ρ·L everywhere.
     """
-    rgb = np.broadcast_to(np.asarray(radiance, np.float32), (3,))
-    return np.broadcast_to(rgb, (height, width, 3)).astype(np.float32)
+    return np.broadcast_to(_rgb(radiance), (height, width, 3)).astype(np.float32)
+
+
+def cap(radiance=10.0, alpha_deg: float = 20.0, direction=(0, 1, 0),
+        width: int = WIDTH, height: int = HEIGHT, supersample: int = 16) -> np.ndarray:
+    """Radiance L inside a cone of half-angle α around ``direction``, 0 outside.
+
+    Closed forms: solid angle 2π(1 − cos α); irradiance on a plane facing the
+    cone's axis E = π·L·sin²α (so a facing diffuse surface of albedo ρ has
+    radiance ρ·L·sin²α).
+    """
+    if not 0 < alpha_deg <= 90:
+        raise ValueError(f"alpha_deg must be in (0, 90], got {alpha_deg}")
+    axis, L, cos_a = _unit(direction), _rgb(radiance), np.cos(np.radians(alpha_deg))
+    return bake(lambda d: ((d @ axis) >= cos_a)[..., None] * L,
+                width, height, supersample)
 
 
 def gradient(zenith=(0.25, 0.45, 1.0), horizon=(1.0, 0.95, 0.85),
              ground=(0.2, 0.17, 0.15), width: int = 128, height: int = 64) -> np.ndarray:
-    """Smooth sky: ``horizon`` at the horizon blending to ``zenith`` straight up
-    as L(θ) = zenith·cosθ + horizon·(1 − cosθ) for y = cosθ > 0, and a uniform
-    ``ground`` below the horizon. Low frequency everywhere (no sun).
+    """Smooth sky: L(θ) = zenith·cosθ + horizon·(1 − cosθ) above the horizon
+    (y = cosθ > 0) and a uniform ``ground`` below. Low frequency everywhere.
 
-    Irradiance on an upward-facing plane, ∫ L cosθ dω over the upper
-    hemisphere: E = 2π (zenith/3 + horizon/6).
+    Closed form: irradiance on an upward-facing plane
+    E = 2π (zenith/3 + horizon/6).
     """
-    y = directions(width, height)[..., 1:2]
-    z, h, g = (np.asarray(c, np.float64) for c in (zenith, horizon, ground))
-    sky = z * y + h * (1 - y)
-    return np.where(y > 0, sky, g).astype(np.float32)
+    z, h, g = _rgb(zenith), _rgb(horizon), _rgb(ground)
+
+    def radiance(d):
+        y = d[..., 1:2]
+        return np.where(y > 0, z * y + h * (1 - y), g)
+
+    return bake(radiance, width, height, supersample=1)
+
+
+def checker(low=0.1, high=1.0, squares: int = 16,
+            width: int = WIDTH, height: int = HEIGHT, supersample: int = 4) -> np.ndarray:
+    """High-frequency checkerboard in (φ, θ): ``2·squares`` columns in φ and
+    ``squares`` rows in θ, alternating ``low`` and ``high``.
+
+    Closed form: every θ band holds equal φ-lengths of ``low`` and ``high``,
+    so the irradiance on a plane facing ±y is E = π·(low + high)/2, like a
+    constant map of the mean radiance.
+    """
+    if squares < 1:
+        raise ValueError(f"squares must be >= 1, got {squares}")
+    lo, hi = _rgb(low), _rgb(high)
+
+    def radiance(d):
+        theta = np.arccos(np.clip(d[..., 1], -1, 1))
+        phi = np.mod(np.arctan2(d[..., 0], -d[..., 2]), 2 * np.pi)
+        i = np.floor(phi / (2 * np.pi) * 2 * squares).astype(int)
+        j = np.minimum(np.floor(theta / np.pi * squares).astype(int), squares - 1)
+        return np.where(((i + j) % 2 == 0)[..., None], hi, lo)
+
+    return bake(radiance, width, height, supersample)
+
+
+#: Default lobes of :func:`sg`: (axis, sharpness λ, amplitude a). Both point
+#: at the zenith, so the closed form for an upward plane applies exactly.
+SG_LOBES = (((0, 1, 0), 4.0, (1.0, 0.9, 0.8)), ((0, 1, 0), 32.0, (4.0, 4.0, 4.0)))
+
+
+def sg(lobes=SG_LOBES, width: int = WIDTH, height: int = HEIGHT,
+       supersample: int = 2) -> np.ndarray:
+    """Sum of spherical Gaussians G(v) = a·exp(λ(μ·v − 1)).
+
+    Closed forms, per lobe:
+
+    * total ∫_{S²} G dω = 2π·a·(1 − e^{−2λ})/λ;
+    * irradiance on a plane whose normal is the lobe axis μ,
+      ∫_{H} G (μ·v) dω = 2π·a·(λ − 1 + e^{−λ})/λ²;
+    * against a Phong lobe cosⁿ around μ: 2π·a·∫₀¹ tⁿ e^{λ(t−1)} dt
+      (a lower incomplete gamma function).
+    """
+    parsed = [(_unit(mu), float(lam), _rgb(a)) for mu, lam, a in lobes]
+    if any(lam <= 0 for _, lam, _ in parsed):
+        raise ValueError("sharpness λ must be > 0")
+
+    def radiance(d):
+        return sum(a * np.exp(lam * (d @ mu - 1))[..., None] for mu, lam, a in parsed)
+
+    return bake(radiance, width, height, supersample)
+
+
+def sg_irradiance_on_axis(lam: float, amplitude) -> np.ndarray:
+    """∫_H a·e^{λ(cosθ−1)} cosθ dω for a plane facing the lobe axis."""
+    return 2 * np.pi * _rgb(amplitude) * (lam - 1 + np.exp(-lam)) / lam ** 2
+
+
+def irradiance(rgb: np.ndarray, normal=(0, 1, 0)) -> np.ndarray:
+    """Irradiance ∫ L(v) max(0, n·v) dω of a discrete map (pixel quadrature).
+
+    Each pixel is treated as constant over its solid angle
+    Δφ·(cos θ₀ − cos θ₁); this is the number a renderer sees up to
+    Mitsuba's bilinear interpolation, so comparing it with a closed form
+    measures the map's discretisation error.
+    """
+    h, w, _ = rgb.shape
+    n = _unit(normal)
+    d = directions(w, h, 4)                                   # (h, w, 16, 3)
+    cos = np.clip(d @ n, 0, None).mean(axis=2)                # mean cosine in pixel
+    edges = np.cos(np.linspace(0, np.pi, h + 1))
+    solid = (edges[:-1] - edges[1:])[:, None] * (2 * np.pi / w)
+    return np.einsum("hwc,hw->c", rgb.astype(np.float64), cos * solid)
 
 
 def _umask() -> int:
@@ -54,6 +183,8 @@ def _umask() -> int:
 
 def write(path: str | os.PathLike, rgb: np.ndarray) -> str:
     """Write ``rgb`` (H, W, 3) as a float32 OpenEXR file, atomically."""
+    import tempfile
+
     import OpenEXR
 
     path = os.fspath(path)
@@ -61,14 +192,16 @@ def write(path: str | os.PathLike, rgb: np.ndarray) -> str:
     if rgb.ndim != 3 or rgb.shape[2] != 3:
         raise ValueError(f"expected an (H, W, 3) array, got shape {rgb.shape}")
     directory = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(suffix=".exr", dir=directory)
+    if not os.path.isdir(directory):
+        raise FileNotFoundError(f"output directory does not exist: {directory}")
+    fd, tmp = tempfile.mkstemp(prefix=".partial-", suffix=".exr", dir=directory)
     os.close(fd)
     try:
         header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
         OpenEXR.File(header, {"RGB": rgb}).write(tmp)
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp creates 0600
         os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
     return path

@@ -18,6 +18,7 @@ min-p 2.8× above the Šidák level), so the Cornell box uses that budget (and
 far less.
 """
 
+import numpy as np
 import pytest
 
 from validation import renders, statistics
@@ -85,3 +86,37 @@ def test_rejects_wrong_pdf(llvm, case):
     est, ref = stacks(llvm, case, wrong_pdf_integrator("cosine_hemisphere"), -1)
     result = statistics.compare(est, ref, ALPHA)
     assert not result.passed, "pdf x1.05 was accepted: " + result.summary()
+
+
+# ----------------------- The test itself, on synthetic data -----------------------
+
+def synthetic(rng, shift=(1.0, 1.0, 1.0), k=16, shape=(8, 8, 3)):
+    base = rng.normal(1.0, 0.01, (k, *shape))
+    return base * np.asarray(shift)
+
+
+def test_statistic_rejects_a_colour_shift_with_unchanged_mean():
+    """R +3%, B −3%: the channel mean is unchanged; a mean-only test misses it."""
+    rng = np.random.default_rng(1)
+    rejected = sum(not statistics.compare(synthetic(rng, (1.03, 1, 0.97)),
+                                          synthetic(rng)).passed for _ in range(20))
+    assert rejected == 20
+
+
+def test_statistic_false_rejection_rate_is_at_most_alpha():
+    """Same distribution on both sides: rejections ≈ Binomial(200, ≤ α)."""
+    rng = np.random.default_rng(2)
+    rejected = sum(not statistics.compare(synthetic(rng), synthetic(rng)).passed
+                   for _ in range(200))
+    # P(Binomial(200, 0.01) >= 7) ≈ 0.005: fail only on a real excess
+    assert rejected < 7
+
+
+def test_statistic_refuses_empty_masks_and_nonfinite_input():
+    rng = np.random.default_rng(3)
+    a, b = synthetic(rng), synthetic(rng)
+    with pytest.raises(ValueError, match="no pixels"):
+        statistics.compare(a, b, mask=np.zeros((8, 8), bool))
+    a[0, 0, 0, 0] = np.nan
+    with pytest.raises(ValueError, match="NaN or Inf"):
+        statistics.compare(a, b)

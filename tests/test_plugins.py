@@ -128,12 +128,21 @@ UNREACHABLE_BSDFS = {
     "roughdielectric": ({"type": "roughdielectric", "alpha": 0.3}, {"transmission"}),
     "mask": ({"type": "mask", "opacity": 0.5, "bsdf": {"type": "diffuse"}}, {"transmission"}),
     "twosided conductor": ({"type": "twosided", "bsdf": {"type": "conductor"}}, {"delta_bsdf"}),
+    # near-delta: Mitsuba clamps alpha=0 to 1e-4 and sets no Delta flag
+    "roughconductor alpha 0": ({"type": "roughconductor", "alpha": 0.0}, {"delta_bsdf"}),
+    "twosided roughconductor alpha 1e-3": (
+        {"type": "twosided", "bsdf": {"type": "roughconductor", "alpha": 1e-3}}, {"delta_bsdf"}),
+    "principled roughness 0": ({"type": "principled", "roughness": 0.0}, {"delta_bsdf"}),
+    "principled glossy clearcoat": ({"type": "principled", "roughness": 0.5, "clearcoat": 1.0,
+                                     "clearcoat_gloss": 1.0}, {"delta_bsdf"}),
 }
 REACHABLE_BSDFS = {
     "diffuse": {"type": "diffuse"},
     "roughconductor": {"type": "roughconductor", "alpha": 0.2},
     "roughplastic": {"type": "roughplastic", "alpha": 0.2},
     "twosided diffuse": {"type": "twosided", "bsdf": {"type": "diffuse"}},
+    "roughconductor alpha 0.01": {"type": "roughconductor", "alpha": 0.01},
+    "principled": {"type": "principled", "roughness": 0.3, "metallic": 0.5},
 }
 
 
@@ -155,6 +164,17 @@ def test_refuses_delta_and_transmissive_bsdfs(variant, name, kind):
     error = refusal(scene, name)
     assert {p.kind for p in error.problems} == expected
     assert "shape 'shiny'" in str(error) and "'shiny_bsdf'" in str(error)
+
+
+def test_refuses_content_nested_in_instances(variant):
+    scene = tiny_scene(
+        group={"type": "shapegroup",
+               "ball": {"type": "sphere", "bsdf": {"type": "dielectric", "id": "glass"}}},
+        copy={"type": "instance", "shapegroup": {"type": "ref", "id": "group"}},
+        env=LIGHT)
+    for name in ESTIMATORS:
+        error = refusal(scene, name)
+        assert "shape 'ball' with BSDF 'glass' (SmoothDielectric)" in str(error)
 
 
 @pytest.mark.parametrize("scene_file, culprit", [

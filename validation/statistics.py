@@ -7,18 +7,21 @@ samples are heavy-tailed; the spread over renders measures each side's *own*
 variance. (Mitsuba's render test uses the reference integrator's variance for
 both sides, which wrongly rejects correct hemisphere estimators.)
 
-Per pixel (channel mean), Welch's t statistic
+Per pixel and colour channel, Welch's t statistic
 
     t = (ȳ_est − ȳ_ref) / sqrt(s²_est/K + s²_ref/M)
 
 with Welch–Satterthwaite degrees of freedom gives a two-sided p-value. The
-pooled test does the same on the image mean of each render.
+pooled test does the same, per channel, on the image mean of each render.
+Channels are tested separately so that a colour shift with an unchanged
+channel mean is caught; an alpha channel (4th) is ignored.
 
 Error budget: total α (default 0.01), split by Bonferroni into α/2 for the
-pooled test and α/2 for the per-pixel family, which is Šidák-corrected over
-the P tested pixels: α_px = 1 − (1 − α/2)^(1/P). The estimator passes when no
-pixel has p < α_px and the pooled p ≥ α/2. Under the null hypothesis it fails
-with probability ≤ α.
+pooled tests (α/(2C) per channel) and α/2 for the per-pixel family, which is
+Šidák-corrected over the P·C tested pixel channels:
+α_px = 1 − (1 − α/2)^(1/(P·C)). The estimator passes when no pixel channel has
+p < α_px and every pooled p ≥ α/(2C). Under the null hypothesis it fails with
+probability ≤ α.
 
 Pixels where both sides have zero variance (constant radiance) are exact:
 they pass if the means agree to float32 rounding and fail otherwise.
@@ -43,21 +46,25 @@ class Comparison:
     """Outcome of :func:`compare` (p-values are two-sided)."""
 
     alpha: float
-    alpha_pixel: float       # Šidák-corrected per-pixel level
+    alpha_pixel: float       # Šidák-corrected level per pixel channel
     n_pixels: int
-    pixel_p: np.ndarray      # (H, W) per-pixel p-values
-    pixel_t: np.ndarray      # (H, W) per-pixel t statistics
-    pass_fraction: float     # fraction of pixels with p >= alpha_pixel
+    n_channels: int
+    pixel_p: np.ndarray      # (H, W) smallest p over channels (NaN: not tested)
+    pixel_t: np.ndarray      # (H, W) t of that channel
+    pass_fraction: float     # fraction of pixels whose channels all pass
     min_p: float
-    pooled_t: float
-    pooled_p: float
+    pooled_t: np.ndarray     # (C,) per channel
+    pooled_p: np.ndarray     # (C,)
+    alpha_pooled: float      # level per pooled channel test
     passed: bool
 
     def summary(self) -> str:
         verdict = "PASS" if self.passed else "FAIL"
+        pooled = ", ".join(f"{t:+.2f}" for t in self.pooled_t)
         return (f"{verdict}: {self.pass_fraction:.2%} of {self.n_pixels} pixels pass "
-                f"at Šidák α_px={self.alpha_pixel:.2e} (min p={self.min_p:.2e}); "
-                f"pooled t={self.pooled_t:+.2f}, p={self.pooled_p:.3g} (α/2={self.alpha / 2})")
+                f"at Šidák α_px={self.alpha_pixel:.2e} over {self.n_channels} channels "
+                f"(min p={self.min_p:.2e}); pooled t=[{pooled}], "
+                f"min p={self.pooled_p.min():.3g} (level {self.alpha_pooled:.3g})")
 
 
 def welch(mean_a, var_a, n_a, mean_b, var_b, n_b):
@@ -95,31 +102,40 @@ def compare(estimator: np.ndarray, reference: np.ndarray, alpha: float = ALPHA,
             mask: np.ndarray | None = None) -> Comparison:
     """Test that ``estimator`` and ``reference`` renders have equal means.
 
-    Both are stacks of independent renders, shape (n, H, W, C). ``mask``
-    (H, W) selects the pixels to test (default: all).
+    Both are stacks of independent renders, shape (n, H, W, C) with C in
+    {1, 3, 4} (a 4th, alpha channel is ignored). ``mask`` (H, W) selects the
+    pixels to test (default: all).
     """
-    est = np.asarray(estimator, np.float64).mean(axis=-1)  # channel mean
-    ref = np.asarray(reference, np.float64).mean(axis=-1)
+    est, ref = (np.asarray(x, np.float64) for x in (estimator, reference))
+    if est.ndim == 3:
+        est, ref = est[..., None], ref[..., None]
     if est.shape[1:] != ref.shape[1:]:
         raise ValueError(f"image sizes differ: {est.shape[1:]} vs {ref.shape[1:]}")
+    est, ref = est[..., :3], ref[..., :3]
     if not (np.isfinite(est).all() and np.isfinite(ref).all()):
         raise ValueError("renders contain NaN or Inf")
-    mask = np.ones(est.shape[1:], bool) if mask is None else np.asarray(mask, bool)
+    mask = np.ones(est.shape[1:3], bool) if mask is None else np.asarray(mask, bool)
+    n_pixels, n_channels = int(mask.sum()), est.shape[-1]
+    if n_pixels == 0:
+        raise ValueError("the mask selects no pixels to test")
 
-    t, p = welch(*batch_moments(est), *batch_moments(ref))
-    n_pixels = int(mask.sum())
-    alpha_pixel = 1.0 - (1.0 - alpha / 2) ** (1.0 / n_pixels)
-    tested = p[mask]
+    t, p = welch(*batch_moments(est), *batch_moments(ref))          # (H, W, C)
+    alpha_pixel = 1.0 - (1.0 - alpha / 2) ** (1.0 / (n_pixels * n_channels))
+    tested = p[mask]                                                 # (P, C)
 
-    # Pooled: the mean over the tested pixels, one value per render.
+    # Pooled: per channel, the mean over the tested pixels, one value per render.
     pooled_t, pooled_p = welch(*batch_moments(est[:, mask].mean(axis=1)),
                                *batch_moments(ref[:, mask].mean(axis=1)))
-    pooled_t, pooled_p = float(pooled_t), float(pooled_p)
+    alpha_pooled = alpha / (2 * n_channels)
 
-    passed = bool(tested.min() >= alpha_pixel and pooled_p >= alpha / 2)
-    return Comparison(alpha, alpha_pixel, n_pixels, np.where(mask, p, np.nan),
-                      np.where(mask, t, np.nan), float((tested >= alpha_pixel).mean()),
-                      float(tested.min()), pooled_t, pooled_p, passed)
+    worst = np.argmin(p, axis=-1)[..., None]
+    pixel_p = np.where(mask, np.take_along_axis(p, worst, -1)[..., 0], np.nan)
+    pixel_t = np.where(mask, np.take_along_axis(t, worst, -1)[..., 0], np.nan)
+    passed = bool(tested.min() >= alpha_pixel and pooled_p.min() >= alpha_pooled)
+    return Comparison(alpha, alpha_pixel, n_pixels, n_channels, pixel_p, pixel_t,
+                      float((tested.min(axis=-1) >= alpha_pixel).mean()),
+                      float(tested.min()), np.atleast_1d(pooled_t),
+                      np.atleast_1d(pooled_p), alpha_pooled, passed)
 
 
 def mean_interval(values: np.ndarray, alpha: float = ALPHA):
@@ -127,5 +143,7 @@ def mean_interval(values: np.ndarray, alpha: float = ALPHA):
     (1 − α) Student-t confidence interval."""
     values = np.asarray(values, np.float64)
     n = values.size
+    if n < 2:
+        raise ValueError("need at least 2 independent values for an interval")
     half = stats.t.ppf(1 - alpha / 2, n - 1) * values.std(ddof=1) / np.sqrt(n)
     return float(values.mean()), float(half)
