@@ -132,12 +132,14 @@ def _roughness_problems(bsdf, owner: str) -> list[Problem]:
 
 
 def _owner(obj, hierarchy) -> str:
-    """'shape 'x' with BSDF 'y' (Class)' for a BSDF, naming its nearest shape."""
-    parent = hierarchy[obj][0]
-    while parent is not None and not isinstance(parent, mi.Shape):
+    """"shape 'x' with BSDF 'y' (Class) > 'z' (Inner)" for a (nested) BSDF."""
+    chain, parent = [obj], hierarchy[obj][0]
+    while isinstance(parent, mi.BSDF):         # wrappers: twosided, blendbsdf, ...
+        chain.insert(0, parent)
         parent = hierarchy[parent][0]
-    where = f"shape {_name(parent)} with " if parent is not None else ""
-    return f"{where}BSDF {_name(obj)} ({obj.class_name()})"
+    bsdfs = " > ".join(f"{_name(b)} ({b.class_name()})" for b in chain)
+    where = f"shape {_name(parent)} with " if isinstance(parent, mi.Shape) else ""
+    return f"{where}BSDF {bsdfs}"
 
 
 def unreachable(scene) -> list[Problem]:
