@@ -1,11 +1,14 @@
 """Deterministic procedural environment maps (float32 RGB, Mitsuba latlong).
 
 Each generator returns an ``(height, width, 3)`` float32 array in Mitsuba's
-``envmap`` convention (y up; pixel (u, v) = (φ/2π, θ/π) looks along
-(sinφ sinθ, cosθ, −cosφ sinθ)). Pixel values are box-filtered over
-``supersample``² sub-pixel directions, so hard edges (cap, checker) keep their
-solid angle; the closed forms in the docstrings hold for the continuous map,
-and :func:`irradiance` measures how far a discrete map is from them.
+``envmap`` convention: y up, direction (sinφ sinθ, cosθ, −cosφ sinθ). Mitsuba
+3.9 interpolates bilinearly between *nodes*: column j sits at φ = 2π(j + ½)/W
+(pixel centres) but row i at θ = π·i/(H − 1), so the first and last rows are
+the poles (envmap.cpp, eval_spectrum). A value is the box filter of the
+radiance over its node's cell, averaged from ``supersample``² directions, so
+hard edges (cap, checker) keep their solid angle. The closed forms in the
+docstrings hold for the continuous map; :func:`irradiance` measures how far a
+discrete map is from them.
 """
 
 from __future__ import annotations
@@ -37,12 +40,25 @@ def bake(radiance, width: int = WIDTH, height: int = HEIGHT,
     return out
 
 
+def cell_directions(width: int, height: int, y: int, x: int, supersample: int) -> np.ndarray:
+    """The ``supersample``² directions of node (y, x)'s cell, shape (s², 3)."""
+    s = supersample
+    o = (np.arange(s) + 0.5) / s
+    phi = (x + o) / width * 2 * np.pi
+    theta = np.clip((y + o - 0.5) / (height - 1), 0.0, 1.0) * np.pi
+    theta, phi = (a.ravel() for a in np.meshgrid(theta, phi, indexing="ij"))
+    return np.stack([np.sin(phi) * np.sin(theta), np.cos(theta),
+                     -np.cos(phi) * np.sin(theta)], axis=-1)
+
+
 def _band(width, height, top, rows, supersample):
     """Sub-pixel directions of rows [top, top + rows) (see :func:`directions`)."""
     s = supersample
     offsets = (np.arange(s) + 0.5) / s
     u = (np.arange(width)[:, None] + offsets[None, :]).reshape(-1) / width
-    v = (np.arange(top, top + rows)[:, None] + offsets[None, :]).reshape(-1) / height
+    # row i covers θ ∈ [i − ½, i + ½]·π/(H − 1), clipped to [0, π] at the poles
+    v = (np.arange(top, top + rows)[:, None] + offsets[None, :] - 0.5).reshape(-1)
+    v = np.clip(v / (height - 1), 0.0, 1.0)
     phi, theta = np.meshgrid(u * 2 * np.pi, v * np.pi)
     d = np.stack([np.sin(phi) * np.sin(theta), np.cos(theta),
                   -np.cos(phi) * np.sin(theta)], axis=-1)
@@ -161,16 +177,17 @@ def sg_irradiance_on_axis(lam: float, amplitude) -> np.ndarray:
 def irradiance(rgb: np.ndarray, normal=(0, 1, 0)) -> np.ndarray:
     """Irradiance ∫ L(v) max(0, n·v) dω of a discrete map (pixel quadrature).
 
-    Each pixel is treated as constant over its solid angle
-    Δφ·(cos θ₀ − cos θ₁); this is the number a renderer sees up to
-    Mitsuba's bilinear interpolation, so comparing it with a closed form
-    measures the map's discretisation error.
+    Each value is treated as constant over its node's cell, of solid angle
+    Δφ·(cos θ₀ − cos θ₁) with θ₀,₁ = (i ∓ ½)·π/(H − 1) clipped to [0, π]; this
+    is the number a renderer sees up to Mitsuba's bilinear interpolation, so
+    comparing it with a closed form measures the map's discretisation error.
     """
     h, w, _ = rgb.shape
     n = _unit(normal)
     d = directions(w, h, 4)                                   # (h, w, 16, 3)
-    cos = np.clip(d @ n, 0, None).mean(axis=2)                # mean cosine in pixel
-    edges = np.cos(np.linspace(0, np.pi, h + 1))
+    cos = np.clip(d @ n, 0, None).mean(axis=2)                # mean cosine in cell
+    bounds = np.clip((np.arange(h + 1) - 0.5) / (h - 1), 0, 1) * np.pi
+    edges = np.cos(bounds)
     solid = (edges[:-1] - edges[1:])[:, None] * (2 * np.pi / w)
     return np.einsum("hwc,hw->c", rgb.astype(np.float64), cos * solid)
 

@@ -40,13 +40,21 @@ def _variant(variant: str):
             mi.set_variant(before)
 
 
-def emitter(mi, sun_elevation_deg: float, sun_azimuth_deg: float, turbidity: float):
-    """A y-up ``sunsky`` emitter with the sun at the given elevation/azimuth."""
+def sun_direction(sun_elevation_deg: float, sun_azimuth_deg: float) -> np.ndarray:
+    """Unit direction towards the sun in the map's y-up world frame."""
     el, az = np.radians(sun_elevation_deg), np.radians(sun_azimuth_deg)
-    sun_local = [float(np.cos(el) * np.cos(az)), float(np.cos(el) * np.sin(az)),
-                 float(np.sin(el))]  # sunsky's own frame is z-up
+    return np.array([np.cos(el) * np.cos(az), np.sin(el), -np.cos(el) * np.sin(az)])
+
+
+def emitter(mi, sun_elevation_deg: float, sun_azimuth_deg: float, turbidity: float):
+    """A y-up ``sunsky`` emitter with the sun at the given elevation/azimuth.
+
+    ``to_world`` turns sunsky's z-up sky into y-up; ``sun_direction`` is
+    taken in *world* space by Mitsuba 3.9 (measured: the baked peak lands there).
+    """
     return mi.load_dict({
-        "type": "sunsky", "sun_direction": sun_local, "turbidity": float(turbidity),
+        "type": "sunsky", "turbidity": float(turbidity),
+        "sun_direction": [float(c) for c in sun_direction(sun_elevation_deg, sun_azimuth_deg)],
         "to_world": mi.ScalarTransform4f().rotate([1, 0, 0], -90),
     })
 
@@ -60,7 +68,7 @@ def _radiance(mi, em, d: np.ndarray) -> np.ndarray:
 
 def bake(sun_elevation_deg: float = 30.0, sun_azimuth_deg: float = 40.0,
          turbidity: float = 3.0, scale: float = 1.0, width: int = 1024, height: int = 512,
-         supersample: int = 2, sun_supersample: int = 32,
+         supersample: int = 2, sun_supersample: int = 64,
          variant: str = "llvm_ad_rgb") -> np.ndarray:
     """Bake the sun and sky to a latlong map (H, W, 3) float32.
 
@@ -72,12 +80,11 @@ def bake(sun_elevation_deg: float = 30.0, sun_azimuth_deg: float = 40.0,
         rgb = procedural.bake(flat, width, height, supersample).astype(np.float64)
 
         # Refine every pixel within 2° of the sun (the disk's radius is 0.27°).
-        el, az = np.radians(sun_elevation_deg), np.radians(sun_azimuth_deg)
-        sun = np.array([np.cos(el) * np.cos(az), np.sin(el), -np.cos(el) * np.sin(az)])
+        sun = sun_direction(sun_elevation_deg, sun_azimuth_deg)
         centres = procedural.directions(width, height, 1)[:, :, 0]
         near = np.argwhere(centres @ sun > np.cos(np.radians(2.0)))
         if len(near):
-            d = np.stack([procedural._band(width, height, y, 1, sun_supersample)[0, x]
+            d = np.stack([procedural.cell_directions(width, height, y, x, sun_supersample)
                           for y, x in near])                       # (n, s², 3)
             rgb[near[:, 0], near[:, 1]] = flat(d).mean(axis=1)
     return (rgb * scale).astype(np.float32)

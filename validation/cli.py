@@ -3,6 +3,9 @@
     mcillum render SCENE.xml --integrator NAME [--spp N] [--seed S]
                    [--param K=V ...] [--define K=V ...] [--variant V]
                    [--exposure EV] -o OUT.exr
+    mcillum bench SCENE.xml [--integrators a,b,c] [--spp N] [--runs R] [--json F]
+    mcillum envmap NAME [-p K=V ...] [--policy clamp|strict] -o FILE.exr
+    mcillum envmap --list
 
 Exit codes: 0 success, 1 the render failed (message on stderr), 2 usage error.
 """
@@ -60,7 +63,60 @@ def _parser() -> argparse.ArgumentParser:
     b.add_argument("--variant", default=None, help="Mitsuba variant")
     b.add_argument("--json", default=None, metavar="FILE", help="also write results here")
     b.set_defaults(run=_bench)
+
+    e = sub.add_parser(
+        "envmap", help="list, generate or check environment maps",
+        description="Write environment map NAME (a procedural map or a real light probe, "
+                    "sanitised by the loading policy) to an EXR; or list every map.")
+    e.add_argument("name", nargs="?", help="map name (see --list) or an EXR file to check")
+    e.add_argument("--list", action="store_true", help="list every map with its licence")
+    e.add_argument("--param", "-p", action="append", default=[], metavar="K=V",
+                   help="generator parameter, e.g. alpha_deg=30 or radiance=2 (repeatable)")
+    e.add_argument("--policy", choices=("clamp", "strict"), default="clamp",
+                   help="NaN/Inf/negative policy for files (default clamp: negatives → 0, "
+                        "NaN/Inf refused)")
+    e.add_argument("--output", "-o", help="output .exr path")
+    e.set_defaults(run=_envmap)
     return parser
+
+
+def _envmap(args) -> int:
+    import envmaps
+    from envmaps import catalog, procedural, safety
+
+    if args.list:
+        rows = catalog.entries()
+        width = max(len(n) for n in rows)
+        for name, entry in rows.items():
+            print(f"{name:<{width}}  {entry.kind:<10}  {entry.description}")
+            print(f"{'':<{width}}  licence: {entry.licence}")
+            if entry.closed_form:
+                print(f"{'':<{width}}  exact: {entry.closed_form}")
+        return EXIT_OK
+    if not args.name:
+        raise _Usage("give a map NAME (or --list)")
+    if not args.output:
+        raise _Usage("give an output path with -o FILE.exr")
+    if not args.output.lower().endswith(".exr"):
+        raise _Usage(f"output must be an .exr path, got '{args.output}'")
+    from .renders import parse_assignments
+
+    try:
+        params = parse_assignments(args.param)
+    except ValueError as err:
+        raise _Usage(str(err)) from None
+    if args.name in catalog.PROCEDURAL:
+        rgb, report = catalog.generate(args.name, **params), None
+    else:
+        if params:
+            raise _Usage("--param applies to procedural maps only")
+        path = envmaps.probes.path(args.name) if args.name in envmaps.probes.names() \
+            else args.name
+        rgb, report = safety.load(path, args.policy)
+    procedural.write(args.output, rgb)
+    h, w = rgb.shape[:2]
+    print(f"{args.output}: {args.name}, {w}x{h}" + (f"; {report}" if report else ""))
+    return EXIT_OK
 
 
 def _bench(args) -> int:

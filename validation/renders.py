@@ -56,12 +56,34 @@ def parse_assignments(items) -> dict:
     return out
 
 
-def load_scene(path: str | os.PathLike, **defines) -> mi.Scene:
-    """Load a Mitsuba XML scene, passing ``defines`` as its ``$``-parameters."""
+def load_scene(path: str | os.PathLike, envmap_policy: str = "clamp", **defines) -> mi.Scene:
+    """Load a Mitsuba XML scene, passing ``defines`` as its ``$``-parameters.
+
+    An ``envmap`` parameter (given, or the scene's default) may be a map name
+    (``envmaps.entries()``) or a file; either way Mitsuba gets the path of a
+    checked file that obeys ``envmap_policy`` (see :mod:`envmaps.safety`).
+    """
+    import envmaps
+
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"scene file not found: {path}")
+    default = _default(path, "envmap")
+    if "envmap" in defines or default is not None:
+        value = str(defines.get("envmap", default))
+        if value not in envmaps.entries() and not os.path.isabs(value):
+            value = os.path.join(os.path.dirname(os.path.abspath(path)), value)
+        defines["envmap"] = envmaps.resolve(value, envmap_policy)[0]
     return mi.load_file(path, **{k: _xml_value(v) for k, v in defines.items()})
+
+
+def _default(path: str, name: str) -> str | None:
+    """Value of ``<default name="NAME" value="..."/>`` in a scene file, if any."""
+    import re
+
+    with open(path, encoding="utf-8") as f:
+        m = re.search(rf'<default\s+name="{name}"\s+value="([^"]*)"', f.read())
+    return m.group(1) if m else None
 
 
 def _xml_value(value) -> str:
