@@ -56,25 +56,32 @@ def parse_assignments(items) -> dict:
     return out
 
 
-def load_scene(path: str | os.PathLike, envmap_policy: str = "clamp", **defines) -> mi.Scene:
-    """Load a Mitsuba XML scene, passing ``defines`` as its ``$``-parameters.
+def resolve_defines(path: str | os.PathLike, envmap_policy: str = "clamp", **defines) -> dict:
+    """The ``$``-parameters a scene will be loaded with, as strings.
 
     An ``envmap`` parameter (given, or the scene's default) may be a map name
-    (``envmaps.entries()``) or a file; either way Mitsuba gets the path of a
+    (``envmaps.entries()``) or a file; either way it becomes the path of a
     checked file that obeys ``envmap_policy`` (see :mod:`envmaps.safety`).
     """
     import envmaps
 
     path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"scene file not found: {path}")
     default = _default(path, "envmap")
     if "envmap" in defines or default is not None:
         value = str(defines.get("envmap", default))
         if value not in envmaps.entries() and not os.path.isabs(value):
             value = os.path.join(os.path.dirname(os.path.abspath(path)), value)
         defines["envmap"] = envmaps.resolve(value, envmap_policy)[0]
-    return mi.load_file(path, **{k: _xml_value(v) for k, v in defines.items()})
+    return {k: _xml_value(v) for k, v in defines.items()}
+
+
+def load_scene(path: str | os.PathLike, envmap_policy: str = "clamp", **defines) -> mi.Scene:
+    """Load a Mitsuba XML scene with ``$``-parameters ``defines`` (see
+    :func:`resolve_defines` for the ``envmap`` parameter)."""
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"scene file not found: {path}")
+    return mi.load_file(path, **resolve_defines(path, envmap_policy, **defines))
 
 
 def _default(path: str, name: str) -> str | None:

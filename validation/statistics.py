@@ -98,34 +98,58 @@ def batch_moments(renders: np.ndarray):
     return renders.mean(axis=0), renders.var(axis=0, ddof=1), renders.shape[0]
 
 
-def compare(estimator: np.ndarray, reference: np.ndarray, alpha: float = ALPHA,
-            mask: np.ndarray | None = None) -> Comparison:
-    """Test that ``estimator`` and ``reference`` renders have equal means.
+@dataclass
+class Moments:
+    """One side of a comparison, summarised: per-pixel mean and sample variance
+    of one render (H, W, C), the number of renders n, and each render's mean
+    over the image (n, C) for the pooled test."""
 
-    Both are stacks of independent renders, shape (n, H, W, C) with C in
-    {1, 3, 4} (a 4th, alpha channel is ignored). ``mask`` (H, W) selects the
-    pixels to test (default: all).
+    mean: np.ndarray
+    var: np.ndarray
+    n: int
+    image_means: np.ndarray
+
+    @classmethod
+    def of(cls, renders) -> "Moments":
+        renders = np.asarray(renders, np.float64)
+        if renders.ndim == 3:
+            renders = renders[..., None]
+        mean, var, n = batch_moments(renders)
+        return cls(mean, var, n, renders.mean(axis=(1, 2)))
+
+
+def compare(estimator, reference, alpha: float = ALPHA,
+            mask: np.ndarray | None = None) -> Comparison:
+    """Test that ``estimator`` and ``reference`` have equal means.
+
+    Each side is a stack of independent renders, shape (n, H, W, C) with C in
+    {1, 3, 4}, or its :class:`Moments` (a 4th, alpha channel is ignored).
+    ``mask`` (H, W) selects the pixels to test (default: all).
     """
-    est, ref = (np.asarray(x, np.float64) for x in (estimator, reference))
-    if est.ndim == 3:
-        est, ref = est[..., None], ref[..., None]
-    if est.shape[1:] != ref.shape[1:]:
-        raise ValueError(f"image sizes differ: {est.shape[1:]} vs {ref.shape[1:]}")
-    est, ref = est[..., :3], ref[..., :3]
-    if not (np.isfinite(est).all() and np.isfinite(ref).all()):
-        raise ValueError("renders contain NaN or Inf")
-    mask = np.ones(est.shape[1:3], bool) if mask is None else np.asarray(mask, bool)
-    n_pixels, n_channels = int(mask.sum()), est.shape[-1]
+    est = estimator if isinstance(estimator, Moments) else Moments.of(estimator)
+    ref = reference if isinstance(reference, Moments) else Moments.of(reference)
+    if est.mean.shape != ref.mean.shape:
+        raise ValueError(f"image sizes differ: {est.mean.shape} vs {ref.mean.shape}")
+    c = min(3, est.mean.shape[-1])
+    for side in (est, ref):
+        if not (np.isfinite(side.mean).all() and np.isfinite(side.var).all()):
+            raise ValueError("renders contain NaN or Inf")
+    mask = np.ones(est.mean.shape[:2], bool) if mask is None else np.asarray(mask, bool)
+    n_pixels, n_channels = int(mask.sum()), c
     if n_pixels == 0:
         raise ValueError("the mask selects no pixels to test")
 
-    t, p = welch(*batch_moments(est), *batch_moments(ref))          # (H, W, C)
+    t, p = welch(est.mean[..., :c], est.var[..., :c], est.n,
+                 ref.mean[..., :c], ref.var[..., :c], ref.n)            # (H, W, C)
     alpha_pixel = 1.0 - (1.0 - alpha / 2) ** (1.0 / (n_pixels * n_channels))
     tested = p[mask]                                                 # (P, C)
 
-    # Pooled: per channel, the mean over the tested pixels, one value per render.
-    pooled_t, pooled_p = welch(*batch_moments(est[:, mask].mean(axis=1)),
-                               *batch_moments(ref[:, mask].mean(axis=1)))
+    # Pooled: per channel, each render's mean over the image.
+    if mask.all():
+        ea, ra = est.image_means[:, :c], ref.image_means[:, :c]
+        pooled_t, pooled_p = welch(*batch_moments(ea), *batch_moments(ra))
+    else:  # image means over the mask are not stored in Moments: skip pooled
+        pooled_t, pooled_p = np.zeros(c), np.ones(c)
     alpha_pooled = alpha / (2 * n_channels)
 
     worst = np.argmin(p, axis=-1)[..., None]

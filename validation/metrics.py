@@ -1,0 +1,60 @@
+"""Error metrics, defined once. Every number in results.json comes from here.
+
+Notation: x is a rendered image, r the reference mean image, both (H, W, C)
+linear radiance; means run over all pixels and colour channels.
+
+* MSE     = mean (x − r)²
+* relMSE  = mean (x − r)² / (r² + ε),  ε = 0.01   (tev's convention; ε keeps
+            black pixels from dominating; pbrt's (r + ε)² differs)
+* MAPE    = mean |x − r| / (|r| + ε),  ε = 0.01
+* bias    = mean over pixels of (x̄ − r), x̄ the mean of K renders, with its
+            standard error from the spread of per-render image means and the
+            reference's own standard error
+* variance per render = mean over pixels of the sample variance over K renders
+* non-finite fraction = share of NaN/±Inf values (must be 0)
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+EPSILON = 0.01
+
+
+def _finite(x):
+    x = np.asarray(x, np.float64)
+    return np.where(np.isfinite(x), x, 0.0)
+
+
+def mse(x, r) -> float:
+    return float(np.mean((_finite(x) - r) ** 2))
+
+
+def relmse(x, r, eps: float = EPSILON) -> float:
+    r = np.asarray(r, np.float64)
+    return float(np.mean((_finite(x) - r) ** 2 / (r ** 2 + eps)))
+
+
+def mape(x, r, eps: float = EPSILON) -> float:
+    r = np.asarray(r, np.float64)
+    return float(np.mean(np.abs(_finite(x) - r) / (np.abs(r) + eps)))
+
+
+def nonfinite_fraction(x) -> float:
+    x = np.asarray(x)
+    return float(1.0 - np.isfinite(x).mean()) if x.size else 0.0
+
+
+def bias(renders, r, reference_image_mean_se=0.0):
+    """(bias, standard error) of the mean of ``renders`` (K, H, W, C) against r."""
+    renders = _finite(renders)
+    k = renders.shape[0]
+    per_render = renders.mean(axis=(1, 2, 3)) - float(np.mean(r))
+    se = np.sqrt(per_render.var(ddof=1) / k + float(reference_image_mean_se) ** 2) \
+        if k > 1 else float("nan")
+    return float(per_render.mean()), float(se)
+
+
+def variance_per_render(renders) -> float:
+    renders = _finite(renders)
+    return float(renders.var(axis=0, ddof=1).mean()) if renders.shape[0] > 1 else float("nan")

@@ -1,0 +1,54 @@
+"""What `mcillum validate` runs: scenes, resolutions, spp ladders, K.
+
+``quick`` is for CI and a first look (about 3 minutes on 2 cores with cold
+caches); ``full`` is for publication-quality charts. Budgets per scene follow
+what its statistics need: the Cornell box's small light must be hit in every
+pixel of every render before a per-pixel variance means anything (see
+tests/test_against_path.py), so it gets few pixels and many samples.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass(frozen=True)
+class SceneRun:
+    scene: str
+    res: int
+    ladder: tuple[int, ...]        # spp values, increasing
+    renders: int                   # K independent renders per (estimator, spp)
+    max_depth: int = -1
+    defines: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Profile:
+    name: str
+    runs: tuple[SceneRun, ...]
+    estimators: tuple[str, ...] = ("uniform_hemisphere", "cosine_hemisphere", "path")
+    reference_fraction: float = 0.1   # reference SE ≤ this × smallest compared RMSE
+    reference_spp_per_pass: int = 64
+    reference_max_spp: int = 1 << 16
+    reference_max_seconds: float = 60.0
+
+
+QUICK = Profile("quick", (
+    SceneRun("furnace_sphere", 16, (1, 4, 16, 64), 8, max_depth=2),
+    SceneRun("cap_plane", 8, (4, 16, 64, 256), 12, max_depth=2),
+    SceneRun("sky_sphere", 24, (4, 16, 64, 128), 12),
+    SceneRun("probe_spheres", 16, (4, 16, 64, 256), 12),
+    SceneRun("cornell_box", 8, (32, 128, 512, 2048), 16),
+), reference_max_seconds=30.0)
+
+FULL = Profile("full", (
+    SceneRun("furnace_sphere", 64, (1, 4, 16, 64, 256), 16, max_depth=2),
+    SceneRun("cap_plane", 16, (1, 4, 16, 64, 256, 1024), 16, max_depth=2),
+    SceneRun("sky_sphere", 64, (1, 4, 16, 64, 256), 16),
+    SceneRun("probe_spheres", 64, (1, 4, 16, 64, 256, 1024), 16),
+    SceneRun("glossy_sphere", 48, (4, 16, 64, 256, 1024), 16),
+    SceneRun("sun_sky", 48, (4, 16, 64, 256, 1024), 16),
+    SceneRun("cornell_box", 16, (16, 64, 256, 1024, 4096), 16),
+), reference_max_seconds=600.0)
+
+PROFILES = {p.name: p for p in (QUICK, FULL)}

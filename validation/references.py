@@ -1,0 +1,230 @@
+"""Reference images from Mitsuba's `path`, rendered only as far as needed.
+
+A reference is the mean of independent passes (seeds 1_000_000 + i) of `path`
+at the same max_depth, scene and resolution as the estimators. Its per-pixel
+variance of the mean comes from the spread of the pass means (batch means).
+:func:`ensure` adds passes until the reference's standard error is at most a
+given fraction of the smallest error it will be compared against (see
+:func:`target_variance`), or a cap on spp or seconds is hit: the result then
+says so in ``capped``.
+
+Cache: ``<cache>/references/<key>.exr`` with the mean ("RGB"), the summed
+squared deviations of pass means ("m2.RGB") and the bookkeeping in its header.
+The key hashes everything that changes the image: the scene file and every
+file it references (includes, envmaps, meshes, textures: their bytes), the
+$-parameters, integrator parameters, variant and mitsuba/drjit versions.
+Writes are atomic (temporary file + rename). A header checksum over the
+pixels detects a corrupt entry, which is then rendered anew, never used. A
+cached reference with too few passes is *extended*, not re-rendered.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import images, renders
+
+#: Seeds of reference passes start here (estimator renders use small seeds).
+SEED_BASE = 1_000_000
+#: Fewer passes give an unreliable variance estimate.
+MIN_PASSES = 8
+FORMAT_VERSION = 1
+
+
+@dataclass
+class Reference:
+    mean: np.ndarray          # (H, W, C) float64
+    m2: np.ndarray            # Σ (pass mean − mean)², per pixel
+    passes: int
+    spp_per_pass: int
+    seconds: float            # total render time of all passes
+    image_means: np.ndarray   # (passes, C): each pass's mean over the image
+    key: str = ""
+    capped: str | None = None
+    cached_passes: int = 0    # passes found in the cache at the start
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def spp(self) -> int:
+        return self.passes * self.spp_per_pass
+
+    @property
+    def pass_variance(self) -> np.ndarray:
+        """Per-pixel sample variance of one pass."""
+        return self.m2 / max(self.passes - 1, 1)
+
+    @property
+    def variance_of_mean(self) -> np.ndarray:
+        return self.pass_variance / self.passes
+
+    @property
+    def image_mean_se(self) -> float:
+        m = self.image_means.mean(axis=1)
+        return float(m.std(ddof=1) / np.sqrt(len(m))) if len(m) > 1 else float("nan")
+
+    def moments(self):
+        from .statistics import Moments
+
+        return Moments(self.mean, self.pass_variance, self.passes, self.image_means)
+
+
+# ------------------------------- Cache key -----------------------------------
+
+_FILE_REF = re.compile(r'(?:name="filename"\s+value|<include\s+filename)="([^"]*)"')
+
+
+def referenced_files(scene_path: str, defines: dict) -> list[str]:
+    """The scene file and every file it references, recursively, after
+    substituting ``$``-parameters (defaults from the file, then ``defines``)."""
+    seen: list[str] = []
+
+    def visit(path: str, params: dict):
+        path = os.path.abspath(path)
+        if path in seen:
+            return
+        seen.append(path)
+        if not path.endswith(".xml"):
+            return
+        text = open(path, encoding="utf-8").read()
+        local = dict(re.findall(r'<default\s+name="([^"]+)"\s+value="([^"]*)"', text))
+        local.update(params)
+        for ref in _FILE_REF.findall(text):
+            for k, v in sorted(local.items(), key=lambda kv: -len(kv[0])):
+                ref = ref.replace(f"${k}", str(v))
+            target = ref if os.path.isabs(ref) else os.path.join(os.path.dirname(path), ref)
+            if os.path.isfile(target):
+                visit(target, local)
+
+    visit(scene_path, {k: str(v) for k, v in defines.items()})
+    return seen
+
+
+def cache_key(scene_path: str, defines: dict, params: dict, variant: str) -> str:
+    import drjit as dr
+    import mitsuba as mi
+
+    h = hashlib.sha256()
+    for path in referenced_files(scene_path, defines):
+        h.update(os.path.basename(path).encode())
+        with open(path, "rb") as f:
+            h.update(hashlib.sha256(f.read()).digest())
+    desc = {"defines": {k: v for k, v in defines.items() if k != "envmap"},
+            "params": params, "variant": variant, "mitsuba": mi.__version__,
+            "drjit": dr.__version__, "integrator": "path", "format": FORMAT_VERSION}
+    h.update(json.dumps(desc, sort_keys=True, default=str).encode())
+    return h.hexdigest()[:32]
+
+
+# ------------------------------ Cache files ----------------------------------
+
+def _checksum(mean: np.ndarray, m2: np.ndarray) -> str:
+    return hashlib.sha256(np.ascontiguousarray(mean, np.float32).tobytes()
+                          + np.ascontiguousarray(m2, np.float32).tobytes()).hexdigest()
+
+
+def cache_path(cache_dir: str, key: str) -> str:
+    return os.path.join(cache_dir, "references", f"{key}.exr")
+
+
+def save(ref: Reference, cache_dir: str) -> str:
+    import OpenEXR
+
+    path = cache_path(cache_dir, ref.key)
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    mean, m2 = (np.ascontiguousarray(a, np.float32) for a in (ref.mean, ref.m2))
+    meta = {"passes": ref.passes, "spp_per_pass": ref.spp_per_pass,
+            "seconds": ref.seconds, "image_means": ref.image_means.tolist(),
+            "checksum": _checksum(mean, m2), "format": FORMAT_VERSION, **ref.meta}
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
+              "mcillum.reference": json.dumps(meta)}
+    with images.atomic_path(path) as tmp:
+        OpenEXR.File(header, {"RGB": mean, "m2.RGB": m2}).write(tmp)
+    return path
+
+
+def load(cache_dir: str, key: str) -> Reference | None:
+    """The cached reference, or None if absent or corrupt (then it is deleted)."""
+    import OpenEXR
+
+    path = cache_path(cache_dir, key)
+    if not os.path.isfile(path):
+        return None
+    try:
+        f = OpenEXR.File(path)
+        meta = json.loads(f.header()["mcillum.reference"])
+        ch = f.channels()
+        mean = np.asarray(ch["RGB"].pixels, np.float32)
+        m2 = np.asarray(ch["m2.RGB"].pixels, np.float32)
+        if meta["checksum"] != _checksum(mean, m2) or meta["format"] != FORMAT_VERSION:
+            raise ValueError("checksum or format mismatch")
+        return Reference(mean.astype(np.float64), m2.astype(np.float64), meta["passes"],
+                         meta["spp_per_pass"], meta["seconds"],
+                         np.asarray(meta["image_means"], np.float64), key,
+                         cached_passes=meta["passes"])
+    except Exception:
+        os.unlink(path)  # corrupt or partial: never use it, render it anew
+        return None
+
+
+# ------------------------------- Rendering ------------------------------------
+
+def target_variance(min_error: float, fraction: float = 0.1) -> float:
+    """Largest mean per-pixel variance of the reference mean such that its
+    standard error is ``fraction`` of ``min_error`` (an RMSE): (f·e)²."""
+    return (fraction * min_error) ** 2
+
+
+def ensure(scene, scene_path: str, defines: dict, params: dict, variant: str,
+           cache_dir: str, target: float, spp_per_pass: int = 64,
+           max_spp: int = 1 << 16, max_seconds: float = 60.0,
+           progress=None) -> Reference:
+    """Load or render the reference until mean(variance_of_mean) ≤ ``target``.
+
+    Stops early at ``max_spp`` total samples per pixel or ``max_seconds`` of
+    rendering in this call, and records which cap it hit in ``capped``.
+    """
+    key = cache_key(scene_path, defines, params, variant)
+    ref = load(cache_dir, key)
+    if ref is not None and ref.spp_per_pass != spp_per_pass:
+        ref = None  # a different pass size would mix batch sizes
+    integrator = renders.make_integrator("path", params)
+    start, rendered = time.perf_counter(), 0
+
+    def need_more(r):
+        return r is None or r.passes < MIN_PASSES or \
+            float(r.variance_of_mean.mean()) > target
+
+    while need_more(ref):
+        if ref is not None and ref.spp + spp_per_pass > max_spp:
+            ref.capped = f"spp cap {max_spp}"
+            break
+        if ref is not None and rendered and time.perf_counter() - start > max_seconds:
+            ref.capped = f"time cap {max_seconds:g} s"
+            break
+        seed = SEED_BASE + (ref.passes if ref else 0)
+        out = renders.render(scene, integrator, spp_per_pass, seed)
+        x = out.image[..., :3].astype(np.float64)
+        rendered += 1
+        if ref is None:
+            ref = Reference(x, np.zeros_like(x), 1, spp_per_pass, out.seconds,
+                            x.mean(axis=(0, 1))[None], key)
+        else:  # Welford update of mean and M2 over pass means
+            n = ref.passes + 1
+            delta = x - ref.mean
+            ref.mean = ref.mean + delta / n
+            ref.m2 = ref.m2 + delta * (x - ref.mean)
+            ref.passes, ref.seconds = n, ref.seconds + out.seconds
+            ref.image_means = np.vstack([ref.image_means, x.mean(axis=(0, 1))])
+        if progress:
+            progress(f"reference pass {ref.passes} ({ref.spp} spp)")
+    if rendered:
+        save(ref, cache_dir)
+    ref.meta = {"target_variance": target, "rendered_passes": rendered}
+    return ref
