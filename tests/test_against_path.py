@@ -120,3 +120,22 @@ def test_statistic_refuses_empty_masks_and_nonfinite_input():
     a[0, 0, 0, 0] = np.nan
     with pytest.raises(ValueError, match="NaN or Inf"):
         statistics.compare(a, b)
+
+
+def test_pooled_moments_match_direct_moments_for_one_rung():
+    rng = np.random.default_rng(4)
+    x = rng.normal(2.0, 0.3, (12, 4, 4, 3))
+    a, b = statistics.Moments.pooled({16: x}), statistics.Moments.of(x)
+    np.testing.assert_allclose(a.mean, b.mean)
+    np.testing.assert_allclose(a.var / a.n, b.var / b.n)
+
+
+def test_pooled_moments_weight_rungs_by_samples():
+    """Rung means with per-sample variance σ² at spp s have variance σ²/s; the
+    pooled mean's variance must be σ²/Σ(spp·K)."""
+    rng = np.random.default_rng(5)
+    sigma, stacks = 0.5, {}
+    for spp in (4, 16, 64):
+        stacks[spp] = rng.normal(1.0, sigma / np.sqrt(spp), (2000, 1, 1, 1))
+    m = statistics.Moments.pooled(stacks)
+    np.testing.assert_allclose(m.var / m.n, sigma ** 2 / (2000 * 84), rtol=0.05)

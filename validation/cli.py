@@ -77,7 +77,62 @@ def _parser() -> argparse.ArgumentParser:
                         "NaN/Inf refused)")
     e.add_argument("--output", "-o", help="output .exr path")
     e.set_defaults(run=_envmap)
+
+    v = sub.add_parser(
+        "validate", help="compare the estimators with Mitsuba's path tracer",
+        description="Render each scene of a profile with every estimator over an spp "
+                    "ladder, build an adaptive `path` reference, test unbiasedness, fit "
+                    "convergence, compare at equal time; write results.json, results.csv, "
+                    "summary.md and images to --out. Exit 0 if every check passes, 1 if "
+                    "one fails, 2 on usage errors.")
+    v.add_argument("--profile", choices=("quick", "full"), default="quick")
+    v.add_argument("--scenes", nargs="+", metavar="SCENE", help="subset of the profile's scenes")
+    v.add_argument("--estimators", nargs="+", metavar="NAME",
+                   help="integrator plugins to validate (default: uniform_hemisphere "
+                        "cosine_hemisphere path)")
+    v.add_argument("--out", default="out/validate", help="output directory (default out/validate)")
+    v.add_argument("--junit", metavar="FILE", help="also write JUnit XML, one case per check")
+    v.add_argument("--cache", metavar="DIR", help="reference cache (default $MCILLUM_CACHE "
+                                                  "or ~/.cache/mcillum)")
+    v.add_argument("--variant", default=None, help="Mitsuba variant")
+    v.set_defaults(run=_validate)
     return parser
+
+
+def _validate(args) -> int:
+    from . import profiles, results, scenes, validate
+
+    profile = profiles.PROFILES[args.profile]
+    known = {r.scene for r in profile.runs}
+    for name in args.scenes or []:
+        if name not in known:
+            raise _Usage(f"scene '{name}' is not in profile '{args.profile}' "
+                         f"({', '.join(sorted(known))})")
+    parent = os.path.dirname(os.path.abspath(args.out))
+    if not os.path.isdir(parent):
+        raise _Usage(f"parent of --out does not exist: {parent}")
+    try:
+        os.makedirs(args.out, exist_ok=True)
+    except OSError as err:
+        raise _Usage(f"cannot create --out {args.out}: {err}") from None
+    if not os.access(args.out, os.W_OK):
+        raise _Usage(f"--out is not writable: {args.out}")
+    if args.estimators:
+        from . import renders
+
+        renders.set_variant(args.variant)
+        for name in args.estimators:
+            try:
+                renders.make_integrator(name)
+            except Exception as err:
+                raise _Usage(f"estimator '{name}' cannot be loaded: "
+                             f"{str(renders.root_cause(err)).splitlines()[0]}") from None
+    out = validate.validate(args.profile, args.scenes, args.estimators, args.out, args.cache,
+                            args.variant)
+    if args.junit:
+        results.write_junit(args.junit, out)
+    print(results.summary(out))
+    return EXIT_OK if out["passed"] else EXIT_FAILED
 
 
 def _envmap(args) -> int:

@@ -37,7 +37,7 @@ QUICK = Profile("quick", (
     SceneRun("furnace_sphere", 16, (1, 4, 16, 64), 8, max_depth=2),
     SceneRun("cap_plane", 8, (4, 16, 64, 256), 12, max_depth=2),
     SceneRun("sky_sphere", 24, (4, 16, 64, 128), 12),
-    SceneRun("probe_spheres", 16, (4, 16, 64, 256), 12),
+    SceneRun("probe_spheres", 8, (16, 64, 256, 1024), 16),
     SceneRun("cornell_box", 8, (32, 128, 512, 2048), 16),
 ), reference_max_seconds=30.0)
 

@@ -33,8 +33,8 @@ class Unit:
     seconds: list[float] = field(default_factory=list)
 
 
-def _key(scene_key: str, estimators, spp: int, k: int) -> str:
-    return hashlib.sha256(json.dumps([scene_key, list(estimators), spp, k]).encode()
+def _key(scene_key: str, estimators, spp: int, k: int, rung: int) -> str:
+    return hashlib.sha256(json.dumps([scene_key, list(estimators), spp, k, rung, 2]).encode()
                           ).hexdigest()[:24]
 
 
@@ -72,8 +72,8 @@ def run(scene, scene_key: str, integrators: dict, ladder, k: int, out_dir: str,
     """All units of one scene: {spp: {estimator: Unit}}."""
     names = list(integrators)
     result = {}
-    for spp in ladder:
-        key = _key(scene_key, names, spp, k)
+    for rung, spp in enumerate(ladder):
+        key = _key(scene_key, names, spp, k, rung)
         path = os.path.join(out_dir, "renders", scene_name, f"spp{spp}.npz")
         cached = _load(path, key)
         if cached is not None:
@@ -86,7 +86,9 @@ def run(scene, scene_key: str, integrators: dict, ladder, k: int, out_dir: str,
         for i in range(k):
             order = names[i % len(names):] + names[:i % len(names)]  # rotate
             for n in order:
-                out = renders.render(scene, integrators[n], spp, seed=SEED_BASE + i)
+                # distinct seeds on every rung: rungs are independent samples
+                out = renders.render(scene, integrators[n], spp,
+                                     seed=SEED_BASE + 10_000 * rung + i)
                 shots[n].append(out.image)
                 times[n].append(out.seconds)
                 if progress:
