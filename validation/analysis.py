@@ -2,9 +2,11 @@
 slopes, efficiency and the equal-time comparison.
 
 * Convergence: least-squares fit of log relMSE against log spp over the
-  ladder (relMSE averaged over the K renders at each spp); the slope's
-  (1 − α) interval is Student-t with n − 2 degrees of freedom. Monte Carlo
-  expects −1.
+  ladder (relMSE averaged over the K renders at each spp, minus the part the
+  reference's own noise adds, mean var_ref/(r² + ε)); the slope's (1 − α)
+  interval is Student-t with n − 2 degrees of freedom. Monte Carlo expects
+  −1. An estimator with zero variance at every rung is exact and converges
+  trivially (the cosine estimator in a furnace).
 * Efficiency: 1 / (relMSE · seconds) per render (higher is better).
 * Equal time: per estimator, fit log relMSE = a + b·log t over the ladder
   (t = median seconds per render); at a common budget T (the geometric mean
@@ -39,6 +41,7 @@ class RunStats:
     seconds: list[float]
     samples_per_second: float
     efficiency: float
+    reference_relmse: float        # what the reference's own noise adds to relmse
 
 
 def run_stats(unit, reference) -> RunStats:
@@ -49,12 +52,13 @@ def run_stats(unit, reference) -> RunStats:
     b, se = metrics.bias(x, r, reference.image_mean_se)
     med = float(np.median(unit.seconds))
     pixels = x.shape[1] * x.shape[2]
+    ref_noise = float(np.mean(reference.variance_of_mean[..., :3] / (r ** 2 + metrics.EPSILON)))
     return RunStats(
         unit.spp, x.shape[0], rel, per, float(np.mean([metrics.mse(i, r) for i in x])),
         float(np.mean([metrics.mape(i, r) for i in x])), b, se,
         metrics.variance_per_render(x), metrics.nonfinite_fraction(unit.images), med,
         [float(s) for s in unit.seconds], pixels * unit.spp / med,
-        1.0 / (rel * med) if rel > 0 else float("inf"))
+        1.0 / (rel * med) if rel > 0 else float("inf"), ref_noise)
 
 
 @dataclass
@@ -62,15 +66,16 @@ class Slope:
     slope: float
     low: float
     high: float
+    exact: bool = False
 
     @property
     def converges(self) -> bool:
-        """The error clearly falls with spp (the interval lies below 0)."""
-        return self.high < 0
+        """Exact, or the error clearly falls with spp (interval below 0)."""
+        return self.exact or self.high < 0
 
     @property
     def consistent_with_mc(self) -> bool:
-        return self.low <= -1.0 <= self.high
+        return self.exact or self.low <= -1.0 <= self.high
 
 
 def loglog_fit(x, y, alpha: float = 0.05):
@@ -83,10 +88,13 @@ def loglog_fit(x, y, alpha: float = 0.05):
 
 
 def convergence(runs: list[RunStats], alpha: float = 0.05) -> Slope:
-    ok = [r for r in runs if r.relmse > 0]
+    if all(r.variance_per_render <= 1e-12 for r in runs):
+        return Slope(float("nan"), float("nan"), float("nan"), exact=True)
+    ok = [(r.spp, r.relmse - r.reference_relmse) for r in runs
+          if r.relmse - r.reference_relmse > 0]
     if len(ok) < 3:
         return Slope(float("nan"), float("-inf"), float("inf"))
-    slope, _, (lo, hi) = loglog_fit([r.spp for r in ok], [r.relmse for r in ok], alpha)
+    slope, _, (lo, hi) = loglog_fit(*zip(*ok), alpha)
     return Slope(float(slope), float(lo), float(hi))
 
 

@@ -83,9 +83,11 @@ def summary(results: dict) -> str:
             lines.append(
                 f"| {est['name']} | {top['relmse']:.3g} | {top['bias']:+.2e} ± "
                 f"{top['bias_se']:.1e} | {'yes' if u['passed'] else '**NO**'} "
-                f"({100 * u['pass_fraction']:.1f}) | {c['slope']:+.2f} [{c['low']:+.2f}, "
-                f"{c['high']:+.2f}] | {top['samples_per_second'] / 1e6:.2f} M | "
-                f"{top['efficiency']:.3g} |")
+                f"({100 * u['pass_fraction']:.1f}) | "
+                + ("exact" if c["exact"] else
+                   f"{c['slope']:+.2f} [{c['low']:+.2f}, {c['high']:+.2f}]")
+                + f" | {top['samples_per_second'] / 1e6:.2f} M | "
+                  f"{top['efficiency']:.3g} |")
         et = scene.get("equal_time")
         if et:
             measured = ", ".join(et["measured_ranking"]) if et["measured_ranking"] else "—"

@@ -102,39 +102,29 @@ def batch_moments(renders: np.ndarray):
 @dataclass
 class Moments:
     """One side of a comparison, summarised: per-pixel mean and sample variance
-    of one render (H, W, C), the number of renders n, and each render's mean
-    over the image (n, C) for the pooled test."""
+    of one render (H, W, C) over n renders, and the same for the image mean
+    (C,), which the pooled test uses."""
 
     mean: np.ndarray
     var: np.ndarray
     n: int
-    image_means: np.ndarray
+    image_mean: np.ndarray
+    image_var: np.ndarray
 
     @classmethod
     def pooled(cls, stacks: dict) -> "Moments":
         """All rungs of a ladder, {spp: (K, H, W, C) renders}, as one side.
 
-        The pixel mean weights each rung by its samples (spp·K); the per-sample
+        The mean weights each rung by its samples (spp·K); the per-sample
         variance σ² is pooled from every rung's spread, Σ spp·Σ(x − x̄)² over
         Σ (K − 1). Expressed as n = ΣK "renders" of variance σ²·n / Σ spp·K so
         that var/n is the variance of the pooled mean. More samples per pixel
         than the top rung alone, so rarer events are seen before judging.
-        Image means (for the pooled test) are those of the top rung.
         """
-        weights, means, ss, dof, n = 0.0, 0.0, 0.0, 0, 0
-        for spp, renders in sorted(stacks.items()):
-            x = np.asarray(renders, np.float64)
-            k = x.shape[0]
-            weights += spp * k
-            means = means + spp * x.sum(axis=0)
-            ss = ss + spp * ((x - x.mean(axis=0)) ** 2).sum(axis=0)
-            dof += k - 1
-            n += k
-        if dof < 1:
-            raise ValueError("need at least 2 renders on some rung")
-        mean, sigma2 = means / weights, ss / dof
-        top = np.asarray(stacks[max(stacks)], np.float64)
-        return cls(mean, sigma2 * n / weights, n, top.mean(axis=(1, 2)))
+        stacks = {spp: np.asarray(x, np.float64) for spp, x in stacks.items()}
+        pixel = _pool({spp: x for spp, x in stacks.items()})
+        image = _pool({spp: x.mean(axis=(1, 2)) for spp, x in stacks.items()})
+        return cls(pixel[0], pixel[1], pixel[2], image[0], image[1])
 
     @classmethod
     def of(cls, renders) -> "Moments":
@@ -142,7 +132,23 @@ class Moments:
         if renders.ndim == 3:
             renders = renders[..., None]
         mean, var, n = batch_moments(renders)
-        return cls(mean, var, n, renders.mean(axis=(1, 2)))
+        im, iv, _ = batch_moments(renders.mean(axis=(1, 2)))
+        return cls(mean, var, n, im, iv)
+
+
+def _pool(stacks: dict):
+    """(mean, variance of one equivalent render, n) of rungs {spp: (K, ...)}."""
+    weights, total, ss, dof, n = 0.0, 0.0, 0.0, 0, 0
+    for spp, x in sorted(stacks.items()):
+        k = x.shape[0]
+        weights += spp * k
+        total = total + spp * x.sum(axis=0)
+        ss = ss + spp * ((x - x.mean(axis=0)) ** 2).sum(axis=0)
+        dof += k - 1
+        n += k
+    if dof < 1:
+        raise ValueError("need at least 2 renders on some rung")
+    return total / weights, ss / dof * n / weights, n
 
 
 def compare(estimator, reference, alpha: float = ALPHA,
@@ -171,11 +177,11 @@ def compare(estimator, reference, alpha: float = ALPHA,
     alpha_pixel = 1.0 - (1.0 - alpha / 2) ** (1.0 / (n_pixels * n_channels))
     tested = p[mask]                                                 # (P, C)
 
-    # Pooled: per channel, each render's mean over the image.
+    # Pooled: per channel, the mean over the whole image.
     if mask.all():
-        ea, ra = est.image_means[:, :c], ref.image_means[:, :c]
-        pooled_t, pooled_p = welch(*batch_moments(ea), *batch_moments(ra))
-    else:  # image means over the mask are not stored in Moments: skip pooled
+        pooled_t, pooled_p = welch(est.image_mean[:c], est.image_var[:c], est.n,
+                                   ref.image_mean[:c], ref.image_var[:c], ref.n)
+    else:  # image means over a mask are not kept in Moments: pixels only
         pooled_t, pooled_p = np.zeros(c), np.ones(c)
     alpha_pooled = alpha / (2 * n_channels)
 

@@ -118,11 +118,13 @@ def validate_scene(run: profiles.SceneRun, profile: profiles.Profile, estimators
                "no NaN/Inf" if finite else "non-finite pixels in renders")
         _check(checks, f"{cid}/unbiased", unbiased["passed"], unbiased["summary"])
         _check(checks, f"{cid}/converges", slope.converges,
+               "exact (zero variance at every spp)" if slope.exact else
                f"relMSE slope {slope.slope:+.2f} [{slope.low:+.2f}, {slope.high:+.2f}]")
         est_out.append({
             "name": name, "params": params, "compile_seconds": compile_s[name],
             "runs": [asdict(s) for s in stats_], "unbiasedness": unbiased,
             "convergence": {"slope": slope.slope, "low": slope.low, "high": slope.high,
+                            "exact": slope.exact,
                             "consistent_with_mc": slope.consistent_with_mc,
                             "passed": slope.converges},
         })
@@ -162,6 +164,14 @@ def validate_scene(run: profiles.SceneRun, profile: profiles.Profile, estimators
     }
 
 
+def _remove_partials(*dirs: str) -> None:
+    for d in dirs:
+        for root, _, files in os.walk(d):
+            for f in files:
+                if f.startswith(".partial-"):
+                    os.unlink(os.path.join(root, f))
+
+
 def validate(profile_name: str = "quick", scene_names=None, estimators=None,
              out_dir: str = "out/validate", cache_dir: str | None = None,
              variant: str | None = None, progress: bool | None = None) -> dict:
@@ -175,6 +185,7 @@ def validate(profile_name: str = "quick", scene_names=None, estimators=None,
     cache_dir = cache_dir or os.path.join(os.environ.get("MCILLUM_CACHE") or os.path.join(
         os.path.expanduser("~"), ".cache", "mcillum"))
     os.makedirs(out_dir, exist_ok=True)
+    _remove_partials(out_dir, cache_dir)   # left by a killed run (one writer at a time)
     start = time.perf_counter()
     total = sum(r.renders * len(estimators) * (len(r.ladder) + 1) for r in runs)
     bar = Progress(total, progress)

@@ -1,0 +1,185 @@
+"""`mcillum validate`: verdicts, outputs, schema, resume and the reference cache."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import xml.etree.ElementTree as ET
+
+import jsonschema
+import numpy as np
+import pytest
+
+import mitsuba as mi
+
+from validation import cli, profiles, references, renders, results, scenes
+
+from conftest import wrong_pdf_integrator
+
+# A small profile for tests: the two analytic scenes, few rungs.
+TINY = profiles.Profile("quick", (
+    profiles.SceneRun("furnace_sphere", 8, (4, 16, 64, 256), 8, max_depth=2),
+    profiles.SceneRun("cap_plane", 4, (16, 64, 256, 1024), 8, max_depth=2),
+), reference_max_seconds=20.0)
+
+
+@pytest.fixture
+def tiny_profile(monkeypatch):
+    monkeypatch.setitem(profiles.PROFILES, "quick", TINY)
+    return TINY
+
+
+def run_cli(tmp_path, *extra):
+    out = tmp_path / "out"
+    code = cli.main(["validate", "--out", str(out), "--cache", str(tmp_path / "cache"),
+                     "--junit", str(tmp_path / "junit.xml"), *extra])
+    return code, out
+
+
+def test_correct_estimators_pass_and_outputs_are_complete(llvm, tiny_profile, tmp_path):
+    code, out = run_cli(tmp_path)
+    data = json.loads((out / "results.json").read_text())
+    assert code == 0, [c for c in data["checks"] if not c["passed"]]
+    assert data["passed"] and len(data["scenes"]) == 2
+    jsonschema.validate(data, json.load(open(results.SCHEMA_FILE)))
+    for scene in data["scenes"]:
+        assert [e["name"] for e in scene["estimators"]] == list(TINY.estimators)
+        for est in scene["estimators"]:
+            assert [r["spp"] for r in est["runs"]] == list(scene["ladder"])
+            assert all(r["nonfinite_fraction"] == 0 for r in est["runs"])
+        assert scene["reference"]["passes"] >= references.MIN_PASSES
+        assert scene["equal_time"]["measured_ranking"]
+        assert (out / "images" / scene["name"] / "reference.exr").is_file()
+    rows = (out / "results.csv").read_text().splitlines()
+    assert rows[0].startswith("scene,estimator,spp") and len(rows) == 1 + 2 * 3 * 4
+    assert "# mcillum validation" in (out / "summary.md").read_text()
+    suite = ET.parse(tmp_path / "junit.xml").getroot()
+    assert int(suite.get("tests")) == len(data["checks"]) and suite.get("failures") == "0"
+
+
+def test_uniform_estimator_slope_is_monte_carlo(llvm, tiny_profile, tmp_path):
+    code, out = run_cli(tmp_path, "--scenes", "cap_plane", "--estimators", "uniform_hemisphere")
+    est = json.loads((out / "results.json").read_text())["scenes"][0]["estimators"][0]
+    assert est["convergence"]["consistent_with_mc"], est["convergence"]
+
+
+def test_biased_estimator_fails_with_exit_1(llvm, tiny_profile, tmp_path, capsys):
+    biased = wrong_pdf_integrator("cosine_hemisphere")
+    mi.register_integrator("biased_cosine", lambda props, cls=type(biased): cls(props))
+    code, out = run_cli(tmp_path, "--scenes", "cap_plane",
+                        "--estimators", "cosine_hemisphere", "biased_cosine")
+    data = json.loads((out / "results.json").read_text())
+    failed = {c["id"] for c in data["checks"] if not c["passed"]}
+    assert code == 1 and failed == {"cap_plane/biased_cosine/unbiased"}
+    assert "biased_cosine/unbiased" in capsys.readouterr().out
+    suite = ET.parse(tmp_path / "junit.xml").getroot()
+    assert suite.get("failures") == "1"
+
+
+@pytest.mark.parametrize("args", [
+    ["--profile", "medium"],
+    ["--scenes", "no_such_scene"],
+    ["--estimators", "no_such_integrator"],
+    ["--out", "/nonexistent/dir/out"],
+])
+def test_usage_errors_exit_2(llvm, tmp_path, args):
+    with pytest.raises(SystemExit) as info:
+        cli.main(["validate", "--cache", str(tmp_path / "cache"), *args])
+    assert info.value.code == 2
+
+
+def test_rerun_resumes_without_rendering(llvm, tiny_profile, tmp_path, monkeypatch):
+    run_cli(tmp_path, "--scenes", "furnace_sphere")
+    npz = sorted((tmp_path / "out" / "renders").rglob("*.npz"))
+    stamps = [p.stat().st_mtime_ns for p in npz]
+    calls = []
+    original = renders.render
+    monkeypatch.setattr(renders, "render", lambda *a, **k: calls.append(a[2]) or original(*a, **k))
+    code, out = run_cli(tmp_path, "--scenes", "furnace_sphere")
+    assert code == 0 and [p.stat().st_mtime_ns for p in npz] == stamps
+    ref = json.loads((out / "results.json").read_text())["scenes"][0]["reference"]
+    assert ref["rendered_passes"] == 0 and ref["cached_passes"] == ref["passes"]
+    # only the compile renders (spp 1) and the equal-time check render again
+    assert set(calls) - {1} <= set(json.loads((out / "results.json").read_text())
+                                   ["scenes"][0]["equal_time"]["spp"].values())
+
+
+# ------------------------------ Reference cache --------------------------------
+
+def furnace(res=4):
+    path = scenes.path("furnace_sphere")
+    defines = renders.resolve_defines(path, res=res)
+    return renders.load_scene(path, res=res), path, defines
+
+
+def test_reference_is_extended_not_rerendered(llvm, tmp_path):
+    scene, path, defines = furnace()
+    params = {"max_depth": 2}
+    a = references.ensure(scene, path, defines, params, "llvm_ad_rgb", str(tmp_path), 1.0, 16)
+    assert a.passes == references.MIN_PASSES and a.meta["rendered_passes"] == a.passes
+    target = float(a.variance_of_mean.mean()) / 4          # needs ~4x the passes
+    b = references.ensure(scene, path, defines, params, "llvm_ad_rgb", str(tmp_path), target, 16)
+    assert b.cached_passes == a.passes and b.passes > a.passes
+    assert b.meta["rendered_passes"] == b.passes - a.passes
+    assert float(b.variance_of_mean.mean()) <= target
+
+
+def test_reference_key_changes_with_everything_that_changes_the_image(llvm, tmp_path):
+    _, path, defines = furnace()
+    base = references.cache_key(path, defines, {"max_depth": 2}, "llvm_ad_rgb")
+    assert base != references.cache_key(path, {**defines, "res": "5"}, {"max_depth": 2},
+                                        "llvm_ad_rgb")
+    assert base != references.cache_key(path, defines, {"max_depth": 3}, "llvm_ad_rgb")
+    assert base != references.cache_key(path, defines, {"max_depth": 2}, "scalar_rgb")
+    # the bytes of referenced files count: an envmap edited in place changes the key
+    env = tmp_path / "env.exr"
+    from envmaps import procedural
+    procedural.write(env, procedural.constant(1.0))
+    sky = scenes.path("sky_sphere")
+    k1 = references.cache_key(sky, {"envmap": str(env)}, {}, "llvm_ad_rgb")
+    procedural.write(env, procedural.constant(2.0))
+    assert k1 != references.cache_key(sky, {"envmap": str(env)}, {}, "llvm_ad_rgb")
+
+
+def test_corrupt_cache_entry_is_rendered_anew(llvm, tmp_path):
+    scene, path, defines = furnace()
+    params = {"max_depth": 2}
+    a = references.ensure(scene, path, defines, params, "llvm_ad_rgb", str(tmp_path), 1.0, 16)
+    file = references.cache_path(str(tmp_path), a.key)
+    data = bytearray(open(file, "rb").read())
+    data[len(data) // 2] ^= 0xFF                            # flip a byte in the pixels
+    open(file, "wb").write(bytes(data))
+    assert references.load(str(tmp_path), a.key) is None and not os.path.exists(file)
+    open(file, "wb").write(b"partial")                      # a truncated file
+    b = references.ensure(scene, path, defines, params, "llvm_ad_rgb", str(tmp_path), 1.0, 16)
+    assert b.cached_passes == 0 and b.meta["rendered_passes"] == b.passes
+    np.testing.assert_allclose(b.mean, a.mean, rtol=1e-6)  # same seeds, same image
+
+
+def test_cache_survives_a_killed_run(llvm, tmp_path):
+    """Kill `mcillum validate` mid-run: no partial files are left where complete
+    ones are expected, and a re-run completes, reusing what was finished."""
+    out, cache = tmp_path / "out", tmp_path / "cache"
+    cmd = [sys.executable, "-m", "validation.cli", "validate", "--out", str(out),
+           "--cache", str(cache), "--scenes", "cornell_box", "furnace_sphere"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 240
+    while time.time() < deadline and not list((out / "renders").rglob("*.npz")):
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    finished = sorted((out / "renders").rglob("*.npz"))
+    assert finished, "the run did not finish any step before the deadline"
+    stamps = {p: p.stat().st_mtime_ns for p in finished}
+    for p in finished:                                     # complete files only
+        with np.load(p) as z:
+            assert "key" in z.files
+    assert not (out / "results.json").exists()
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    assert all(p.stat().st_mtime_ns == t for p, t in stamps.items())
+    assert not list(tmp_path.rglob(".partial-*")), "a killed run's temp files were left"
+    data = json.loads((out / "results.json").read_text())
+    assert {s["name"] for s in data["scenes"]} == {"cornell_box", "furnace_sphere"}
