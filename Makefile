@@ -4,9 +4,14 @@ PYTHON ?= python3
 VENV   ?= .venv
 BIN     = $(VENV)/bin
 
-.PHONY: render test clean
+.PHONY: validate render test clean
 
-# Main job (for now): render the bundled Cornell box with both estimators.
+# Main job: compare every estimator with Mitsuba's path tracer (quick profile)
+# → out/validate/{results.json,results.csv,summary.md,images/}; exit 1 if a check fails.
+validate: $(VENV)/.installed
+	$(BIN)/mcillum validate --profile quick --out out/validate --junit out/validate/junit.xml
+
+# Render the bundled Cornell box with both estimators and path.
 render: $(VENV)/.installed
 	mkdir -p out
 	$(BIN)/mcillum render scenes/cornell_box.xml --integrator cosine_hemisphere --spp 64 -D res=256 -o out/cornell_box_cosine.exr

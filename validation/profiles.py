@@ -39,7 +39,7 @@ QUICK = Profile("quick", (
     SceneRun("sky_sphere", 24, (4, 16, 64, 128), 12),
     SceneRun("probe_spheres", 8, (16, 64, 256, 1024), 16),
     SceneRun("cornell_box", 8, (32, 128, 512, 2048), 16),
-), reference_max_seconds=30.0)
+), reference_max_spp=1 << 18, reference_max_seconds=30.0)
 
 FULL = Profile("full", (
     SceneRun("furnace_sphere", 64, (1, 4, 16, 64, 256), 16, max_depth=2),
@@ -49,6 +49,6 @@ FULL = Profile("full", (
     SceneRun("glossy_sphere", 48, (4, 16, 64, 256, 1024), 16),
     SceneRun("sun_sky", 48, (4, 16, 64, 256, 1024), 16),
     SceneRun("cornell_box", 16, (16, 64, 256, 1024, 4096), 16),
-), reference_max_seconds=600.0)
+), reference_max_spp=1 << 20, reference_max_seconds=600.0)
 
 PROFILES = {p.name: p for p in (QUICK, FULL)}
