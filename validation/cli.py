@@ -108,13 +108,10 @@ def _validate(args) -> int:
         if name not in known:
             raise _Usage(f"scene '{name}' is not in profile '{args.profile}' "
                          f"({', '.join(sorted(known))})")
-    parent = os.path.dirname(os.path.abspath(args.out))
-    if not os.path.isdir(parent):
-        raise _Usage(f"parent of --out does not exist: {parent}")
     try:
         os.makedirs(args.out, exist_ok=True)
     except OSError as err:
-        raise _Usage(f"cannot create --out {args.out}: {err}") from None
+        raise _Usage(f"cannot create --out {args.out}: {err.strerror}") from None
     if not os.access(args.out, os.W_OK):
         raise _Usage(f"--out is not writable: {args.out}")
     if args.estimators:
