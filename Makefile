@@ -4,7 +4,7 @@ PYTHON ?= python3
 VENV   ?= .venv
 BIN     = $(VENV)/bin
 
-.PHONY: validate render test clean
+.PHONY: validate render test browser clean
 
 # Main job: compare every estimator with Mitsuba's path tracer (quick profile)
 # → out/validate/{results.json,results.csv,summary.md,images/}; exit 1 if a check fails.
@@ -18,8 +18,21 @@ render: $(VENV)/.installed
 	$(BIN)/mcillum render scenes/cornell_box.xml --integrator uniform_hemisphere --spp 64 -D res=256 -o out/cornell_box_uniform.exr
 	$(BIN)/mcillum render scenes/cornell_box.xml --integrator path --spp 64 -D res=256 -o out/cornell_box_path.exr
 
-test: $(VENV)/.installed
+test: $(VENV)/.installed browser
 	$(BIN)/python -m pytest
+
+# Debian's Chromium + ChromeDriver for the report's browser test. Installed only
+# where we are root with apt (CI); elsewhere that one test is skipped.
+browser:
+	@if ! command -v chromium >/dev/null || ! command -v chromedriver >/dev/null; then \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    echo "installing Debian's chromium and chromium-driver for the browser test"; \
+	    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq \
+	      chromium chromium-driver >/dev/null) || echo "warning: apt could not install chromium"; \
+	  else \
+	    echo "note: chromium/chromedriver absent; the browser test will be skipped"; \
+	  fi; \
+	fi
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)

@@ -6,6 +6,9 @@
     mcillum bench SCENE.xml [--integrators a,b,c] [--spp N] [--runs R] [--json F]
     mcillum envmap NAME [-p K=V ...] [--policy clamp|strict] -o FILE.exr
     mcillum envmap --list
+    mcillum validate [--profile quick|full] [--scenes ...] [--estimators ...] [--out DIR]
+                     [--junit FILE]
+    mcillum report RESULTS_DIR
 
 Exit codes: 0 success, 1 the render failed (message on stderr), 2 usage error.
 """
@@ -96,7 +99,24 @@ def _parser() -> argparse.ArgumentParser:
                                                   "or ~/.cache/mcillum)")
     v.add_argument("--variant", default=None, help="Mitsuba variant")
     v.set_defaults(run=_validate)
+
+    rp = sub.add_parser(
+        "report", help="(re)write the HTML report of an existing validation run",
+        description="Read RESULTS_DIR/results.json and its images and write "
+                    "RESULTS_DIR/report/index.html (self-contained) and summary.md.")
+    rp.add_argument("results_dir", help="a directory written by `mcillum validate --out`")
+    rp.set_defaults(run=_report)
     return parser
+
+
+def _report(args) -> int:
+    from . import report
+
+    if not os.path.isfile(os.path.join(args.results_dir, "results.json")):
+        raise _Usage(f"no results.json in {args.results_dir}: run `mcillum validate "
+                     f"--out {args.results_dir}` first")
+    print(report.build(args.results_dir))
+    return EXIT_OK
 
 
 def _validate(args) -> int:
@@ -129,6 +149,7 @@ def _validate(args) -> int:
     if args.junit:
         results.write_junit(args.junit, out)
     print(results.summary(out))
+    print(f"report: {os.path.join(args.out, 'report', 'index.html')}")
     return EXIT_OK if out["passed"] else EXIT_FAILED
 
 

@@ -20,7 +20,7 @@ SCENES_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file
 class SceneInfo:
     name: str
     path: str
-    summary: str                                  # first line of the comment
+    summary: str                                  # first paragraph of the comment
     estimators: tuple[str, ...]
     refused_by: tuple[str, ...] = field(default=())
 
@@ -47,7 +47,8 @@ def index(directory: str = SCENES_DIR) -> dict[str, SceneInfo]:
             continue
         path = os.path.join(directory, file)
         header = _header(path)
-        lines = [l.strip() for l in header.strip().splitlines() if l.strip()]
+        paragraph = header.strip().split("\n\n")[0]
+        lines = [" ".join(l.strip() for l in paragraph.splitlines())]
         estimators = _listed(header, "Estimators")
         if not estimators:
             raise ValueError(f"{path}: header has no 'Estimators:' line")

@@ -138,6 +138,10 @@ def validate_scene(run: profiles.SceneRun, profile: profiles.Profile, estimators
         measured = sweeps.equal_time_renders(scene, integrators, spp,
                                              max(4, run.renders // 2), progress)
         analysis.equal_time_measure(equal, measured, ref)
+        for name, unit in measured.items():
+            images.write_exr(os.path.join(img_dir, f"{name}_equal_time.exr"), unit.images[0],
+                             {"integrator": name, "spp": unit.spp,
+                              "render_seconds": float(unit.seconds[0])})
 
     return {
         "name": run.scene, "path": os.path.relpath(info.path, os.getcwd()),
@@ -215,4 +219,7 @@ def validate(profile_name: str = "quick", scene_names=None, estimators=None,
     with images.atomic_path(os.path.join(out_dir, "summary.md")) as tmp:
         with open(tmp, "w", encoding="utf-8") as f:
             f.write(text)
+    from . import report  # the last stage: reads what was just written
+
+    report.build(out_dir)
     return out
