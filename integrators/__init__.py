@@ -29,6 +29,7 @@ from .scene_checks import UnreachableContentError  # noqa: E402,F401  (variant-f
 PLUGINS = {
     "uniform_hemisphere": "uniform_hemisphere",
     "cosine_hemisphere": "cosine_hemisphere",
+    "phong": "phong",  # a BSDF, not an integrator
 }
 
 #: Modules whose classes derive from a variant's types, in reload order:
