@@ -29,6 +29,9 @@ from .scene_checks import UnreachableContentError  # noqa: E402,F401  (variant-f
 PLUGINS = {
     "uniform_hemisphere": "uniform_hemisphere",
     "cosine_hemisphere": "cosine_hemisphere",
+    "bsdf_sampling": "bsdf_sampling",
+    "emitter_sampling": "emitter_sampling",
+    "mis": "mis",
     "phong": "phong",  # a BSDF, not an integrator
 }
 

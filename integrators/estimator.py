@@ -8,14 +8,19 @@ with one sample ω ~ p, i.e. it multiplies the path throughput β by
 
     f_r(ω, ω_o) cos θ / p(ω)
 
-and recurses along ω. Radiance is collected only where a path *hits* an
-emitter (an area light, or the environment when it escapes): there is no
-next-event estimation, so the choice of p decides everything.
+and recurses along ω. Radiance is collected where a path *hits* an emitter
+(an area light, or the environment when it escapes) and, for strategies with
+``use_nee``, by one emitter sample per vertex (next-event estimation).
 
-A strategy is a small pure trio in the local shading frame, supplied by the
-subclass: ``sample_local(u) -> ω`` and ``pdf_local(ω) -> p`` on the upper
-hemisphere (z > 0). The loop mirrors the hemisphere to the side the ray came
-from, so two-sided BSDFs hit from below are handled like those hit from above.
+The direction strategy is :meth:`IlluminationEstimator.sample_direction`. By
+default it is a small pure pair in the local shading frame supplied by the
+subclass, ``sample_local(u) -> ω`` and ``pdf_local(ω) -> p`` on the upper
+hemisphere (z > 0), mirrored to the side the ray came from, so two-sided BSDFs
+hit from below are handled like those hit from above. BSDF sampling overrides
+it. Emission at a hit is weighted by :meth:`hit_weight`: 1 without NEE; with
+NEE, either only where NEE could not have sampled the light (camera rays and
+after delta bounces) or by the power heuristic (``use_mis``).
+
 Depth, Russian roulette, emitter hiding and the validity mask follow Mitsuba's
 ``path`` exactly, so ``path`` at the same ``max_depth`` is the reference.
 
@@ -54,6 +59,13 @@ def read_depths(props: mi.Properties) -> tuple[int, int]:
     return (UNBOUNDED if max_depth == -1 else max_depth), rr_depth
 
 
+def mis_weight(pdf_a, pdf_b):
+    """Power heuristic p_a² / (p_a² + p_b²), 0 where undefined (as `path`)."""
+    a, b = dr.square(pdf_a), dr.square(pdf_b)
+    w = a / (a + b)
+    return dr.detach(dr.select(dr.isfinite(w), w, 0))
+
+
 class IlluminationEstimator(mi.SamplingIntegrator):
     r"""
     Base class of the mcillum estimators (not registered as a plugin).
@@ -86,6 +98,11 @@ class IlluminationEstimator(mi.SamplingIntegrator):
     #: Kinds of :class:`scene_checks.Problem` this strategy handles anyway.
     reachable: frozenset[str] = frozenset()
 
+    #: One emitter sample per vertex (next-event estimation)?
+    use_nee = False
+    #: Weight NEE and BSDF-sampled emitter hits by the power heuristic?
+    use_mis = False
+
     def __init__(self, props: mi.Properties):
         super().__init__(props)
         if mi.is_polarized:
@@ -105,6 +122,18 @@ class IlluminationEstimator(mi.SamplingIntegrator):
     def pdf_local(w: mi.Vector3f) -> mi.Float:
         """Solid-angle density of :meth:`sample_local` (0 where z ≤ 0)."""
         raise NotImplementedError
+
+    def sample_direction(self, scene, sampler, si, bsdf, ctx):
+        """(ω local, weight f cos/p, pdf p, delta?, η) of the next direction.
+
+        Default: ``sample_local``/``pdf_local`` on the hemisphere of ``si.wi``.
+        """
+        w_up = self.sample_local(sampler.next_2d())
+        pdf = self.pdf_local(w_up)
+        wo = mi.Vector3f(w_up.x, w_up.y, dr.mulsign(w_up.z, si.wi.z))
+        f_cos = bsdf.eval(ctx, si, wo)                  # bsdf.eval includes cos θ
+        weight = dr.select(pdf > 0, f_cos / pdf, 0)
+        return wo, weight, pdf, mi.Bool(False), mi.Float(1)
 
     # ------------------------ Scene validation --------------------------
 
@@ -146,46 +175,59 @@ class IlluminationEstimator(mi.SamplingIntegrator):
             pi_behind = self.skip_area_emitters(scene, si0.spawn_ray(ray.d), True, skip)
             pi = dr.select(skip, pi_behind, pi)
 
+        # Previous vertex, for MIS weights of emitter hits
+        prev_si = dr.zeros(mi.Interaction3f)
+        prev_pdf = mi.Float(1)
+        prev_delta = mi.Bool(True)                 # camera rays count as delta
+        η = mi.Float(1)
+
         while dr.hint(active, max_iterations=-1,
                       label=f"mcillum estimator ({self.plugin_name})"):
             si = pi.compute_surface_interaction(ray, mi.RayFlags.All)
 
             # -------------------- Emission at the hit ---------------------
 
-            # L += β · L_e(x, -ω): area light at a surface hit, environment
+            # L += β · w · L_e(x, -ω): area light at a surface hit, environment
             # when the ray escaped (si.emitter() returns it for invalid si).
             emitter = si.emitter(scene)
             # (no `~` on masks here: in scalar variants they are Python bools)
             visible = active & ((not self.hide_emitters) | (depth > 0))
             if emitter != None:
-                L += β * emitter.eval(si, visible)
+                w_hit = self.hit_weight(scene, si, prev_si, prev_pdf, prev_delta)
+                L += β * w_hit * emitter.eval(si, visible)
 
             valid_ray |= active & si.is_valid()
 
             # Does the path get one more vertex?
             active_next = active & (depth + 1 < self.max_depth) & si.is_valid()
 
-            # ------------------ Sample the next direction -------------------
-
             if active_next:  # (masked in JIT variants, a plain branch in scalar)
-                # ω ~ p on the hemisphere on the side of ω_o (si.wi, local frame)
-                w_up = self.sample_local(sampler.next_2d())
-                pdf = self.pdf_local(w_up)
-                wo = mi.Vector3f(w_up.x, w_up.y, dr.mulsign(w_up.z, si.wi.z))
+                bsdf = si.bsdf(ray)
 
-                # β ← β · f_r(ω, ω_o) cos θ / p(ω)   (bsdf.eval includes cos θ)
-                f_cos = si.bsdf(ray).eval(bsdf_ctx, si, wo)
-                β *= dr.select(pdf > 0, f_cos / pdf, 0)
+                # ---------------- Emitter sampling (NEE) -----------------
 
+                if dr.hint(self.use_nee, mode='scalar'):
+                    L += β * self.emitter_sample(scene, sampler, si, bsdf, bsdf_ctx)
+
+                # ---------------- Sample the next direction ----------------
+
+                # β ← β · f_r(ω, ω_o) cos θ / p(ω)
+                wo, weight, pdf, delta, eta = self.sample_direction(
+                    scene, sampler, si, bsdf, bsdf_ctx)
+                β *= weight
+                η *= eta
+                prev_si = mi.Interaction3f(si)
+                prev_pdf = pdf
+                prev_delta = delta
                 ray = si.spawn_ray(si.to_world(wo))
 
             # --------------------- Stopping criterion ---------------------
 
             depth = dr.select(si.is_valid(), depth + 1, depth)
 
-            # Russian roulette exactly as `path`: survive with min(max β, .95)
+            # Russian roulette exactly as `path`: survive with min(max β·η², .95)
             β_max = dr.max(mi.unpolarized_spectrum(β))
-            rr_prob = dr.minimum(β_max, 0.95)
+            rr_prob = dr.minimum(β_max * dr.square(η), 0.95)
             rr_active = depth >= self.rr_depth
             rr_continue = sampler.next_1d(active_next) < rr_prob
             β = dr.select(rr_active, β * dr.rcp(rr_prob), β)
@@ -194,6 +236,31 @@ class IlluminationEstimator(mi.SamplingIntegrator):
             pi = scene.ray_intersect_preliminary(ray, coherent=False, active=active)
 
         return dr.select(valid_ray, L, 0), valid_ray, []
+
+    # ------------------------ NEE and MIS helpers ------------------------
+
+    def hit_weight(self, scene, si, prev_si, prev_pdf, prev_delta):
+        """Weight of emission found by following a sampled direction."""
+        if dr.hint(not self.use_nee, mode='scalar'):
+            return mi.Float(1)                  # the hit is the only estimate
+        if dr.hint(not self.use_mis, mode='scalar'):
+            # NEE already counted every light it can sample: keep only what it
+            # cannot (seen by the camera, or through a delta lobe).
+            return dr.select(prev_delta, 1.0, 0.0)
+        ds = mi.DirectionSample3f(scene, si, prev_si)
+        em_pdf = scene.pdf_emitter_direction(prev_si, ds, dr.select(prev_delta, False, True))
+        return dr.select(prev_delta, 1.0, mis_weight(prev_pdf, em_pdf))
+
+    def emitter_sample(self, scene, sampler, si, bsdf, ctx):
+        """f cos · L_e / p_e for one emitter sample (MIS-weighted if use_mis)."""
+        active_em = mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+        ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, active_em)
+        wo = si.to_local(ds.d)
+        f_cos, bsdf_pdf = bsdf.eval_pdf(ctx, si, wo, active_em)
+        w = mi.Float(1)
+        if dr.hint(self.use_mis, mode='scalar'):
+            w = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, bsdf_pdf))
+        return dr.select(active_em & (ds.pdf != 0), f_cos * em_weight * w, 0)
 
     def to_string(self) -> str:
         depth = -1 if self.max_depth == UNBOUNDED else self.max_depth
