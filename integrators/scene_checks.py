@@ -48,13 +48,14 @@ class UnreachableContentError(ValueError):
         more = len(self.problems) - 5
         tail = f"\n  (and {more} more)" if more > 0 else ""
         super().__init__(
-            f"integrator '{integrator}' cannot render this scene without bias; "
-            f"it samples directions from a continuous pdf over the reflection "
-            f"hemisphere only:\n  - {shown}{tail}"
+            f"integrator '{integrator}' cannot render this scene without bias:"
+            f"\n  - {shown}{tail}"
         )
 
 
 _PATH = "render it with Mitsuba's 'path' integrator"
+_FOR_DELTA_LIGHTS = "use emitter_sampling or mis (or Mitsuba's 'path')"
+_FOR_DELTA_LOBES = "use bsdf_sampling or mis (or Mitsuba's 'path')"
 
 #: Microfacet roughness below which a lobe counts as (near-)delta. Mitsuba
 #: clamps alpha = 0 to 1e-4, which a hemisphere pdf reaches as rarely as a true
@@ -75,8 +76,8 @@ def _emitter_problems(em) -> list[Problem]:
         return []
     return [Problem(
         "delta_emitter", f"delta emitter {_name(em)} ({em.class_name()})",
-        f"hemisphere sampling cannot reach point, spot or directional lights; "
-        f"replace it with a small area emitter, or {_PATH}")]
+        f"a continuous direction pdf cannot reach point, spot or directional "
+        f"lights; {_FOR_DELTA_LIGHTS}, or replace it with a small area emitter")]
 
 
 def _flag_problems(bsdf, owner: str) -> list[Problem]:
@@ -86,14 +87,14 @@ def _flag_problems(bsdf, owner: str) -> list[Problem]:
             or mi.has_flag(flags, mi.BSDFFlags.DeltaTransmission)):
         out.append(Problem(
             "delta_bsdf", f"{owner} has a perfectly specular (delta) lobe",
-            "use a rough variant (roughconductor, roughdielectric, roughplastic "
-            f"with alpha >= {NEAR_DELTA_ALPHA}), or {_PATH}"))
+            f"{_FOR_DELTA_LOBES}, or use a rough variant (roughconductor, "
+            f"roughdielectric, roughplastic with alpha >= {NEAR_DELTA_ALPHA})"))
     if (mi.has_flag(flags, mi.BSDFFlags.Transmission)
             or mi.has_flag(flags, mi.BSDFFlags.Null)):
         out.append(Problem(
             "transmission", f"{owner} transmits or passes light through",
-            f"the hemisphere estimators integrate reflection only; use an opaque "
-            f"BSDF, or {_PATH}"))
+            f"hemisphere estimators integrate reflection only, and emitter samples "
+            f"cannot pass through it; {_FOR_DELTA_LOBES}, or use an opaque BSDF"))
     return out
 
 
@@ -128,7 +129,7 @@ def _roughness_problems(bsdf, owner: str) -> list[Problem]:
         "delta_bsdf", f"{owner} has a near-specular lobe (alpha {min(alphas):.2g} < "
         f"{NEAR_DELTA_ALPHA})",
         f"a hemisphere pdf almost never samples it, so the image comes out dark; "
-        f"raise the roughness to alpha >= {NEAR_DELTA_ALPHA}, or {_PATH}")]
+        f"{_FOR_DELTA_LOBES}, or raise the roughness to alpha >= {NEAR_DELTA_ALPHA}")]
 
 
 def _owner(obj, hierarchy) -> str:
