@@ -139,13 +139,19 @@ class PhongBSDF(mi.BSDF):
             f += ks * (self.exponent + 2.0) * dr.inv_two_pi * dr.power(cos_a, self.exponent)
         return dr.select(valid, f * cos_o, 0.0)                 # eval includes cos θ_o
 
-    def pdf(self, ctx, si, wo, active=True):
+    def _p_specular(self, ctx, si, active):
+        """Probability of sampling the specular lobe (1 or 0 if the context
+        enables only one lobe)."""
         use_d, use_s = self._enabled(ctx)
         _, _, p_spec = self._weights(si, active)
         if not use_d:
             p_spec = mi.Float(1.0)
         if not use_s:
             p_spec = mi.Float(0.0)
+        return p_spec
+
+    def pdf(self, ctx, si, wo, active=True):
+        p_spec = self._p_specular(ctx, si, active)
         cos_i, cos_o = mi.Frame3f.cos_theta(si.wi), mi.Frame3f.cos_theta(wo)
         valid = active & (cos_i > 0) & (cos_o > 0)
         local = mi.Frame3f(mi.reflect(si.wi)).to_local(wo)      # lobe frame
@@ -156,12 +162,7 @@ class PhongBSDF(mi.BSDF):
         return self.eval(ctx, si, wo, active), self.pdf(ctx, si, wo, active)
 
     def sample(self, ctx, si, sample1, sample2, active=True):
-        use_d, use_s = self._enabled(ctx)
-        _, _, p_spec = self._weights(si, active)
-        if not use_d:
-            p_spec = mi.Float(1.0)
-        if not use_s:
-            p_spec = mi.Float(0.0)
+        p_spec = self._p_specular(ctx, si, active)
         pick_spec = sample1 < p_spec
         wo_d = _cosine_sample(sample2)
         wo_s = mi.Frame3f(mi.reflect(si.wi)).to_world(sample_phong_lobe(sample2, self.exponent))
