@@ -191,3 +191,17 @@ def test_cache_survives_a_killed_run(llvm, tmp_path):
     assert not list(tmp_path.rglob(".partial-*")), "a killed run's temp files were left"
     data = json.loads((out / "results.json").read_text())
     assert {s["name"] for s in data["scenes"]} == {"cornell_box", "furnace_sphere"}
+
+
+def test_spp_for_budget_reads_the_measured_ladder():
+    from validation.analysis import spp_for_budget
+
+    ladder = [4, 16, 64, 256]
+    linear = [1e-3 * s for s in ladder]                     # time ∝ spp
+    assert spp_for_budget(32e-3, ladder, linear) == 32
+    assert spp_for_budget(1e-3, ladder, linear) == 1        # below the first rung
+    assert spp_for_budget(512e-3, ladder, linear) == 512    # beyond the last
+    overhead = [4.0e-3, 4.1e-3, 4.3e-3, 5.0e-3]             # launch cost dominates
+    assert 16 <= spp_for_budget(4.2e-3, ladder, overhead) <= 64
+    noisy = [4.0e-3, 3.5e-3, 4.4e-3, 6.0e-3]                # non-monotone timings
+    assert 4 <= spp_for_budget(4.2e-3, ladder, noisy) <= 64

@@ -12,7 +12,7 @@ slopes, efficiency and the equal-time comparison.
   (t = median seconds per render); at a common budget T (the geometric mean
   of the estimators' median times at their middle rung) the fit predicts each
   estimator's relMSE and so a ranking; a render of each estimator at the spp
-  that its own time-vs-spp line says fits in T checks the prediction.
+  its measured ladder says fits in T (:func:`spp_for_budget`) checks it.
 """
 
 from __future__ import annotations
@@ -125,14 +125,28 @@ def equal_time_plan(per_estimator: dict[str, list[RunStats]]) -> EqualTime | Non
         t = [r.median_seconds for r in ok]
         slope, intercept, _ = loglog_fit(t, [r.relmse for r in ok])
         fits[name] = (slope, intercept)
-        # seconds ≈ c0 + c1·spp (launch overhead + per-sample cost)
-        c1, c0 = np.polyfit([r.spp for r in ok], t, 1)
-        lines[name] = (max(c0, 0.0), max(c1, 1e-12))
+        lines[name] = ([r.spp for r in ok], t)
         middles.append(ok[len(ok) // 2].median_seconds)
     budget = float(np.exp(np.mean(np.log(middles))))
     predicted = {n: float(np.exp(b + a * np.log(budget))) for n, (a, b) in fits.items()}
-    spp = {n: max(1, int(round((budget - c0) / c1))) for n, (c0, c1) in lines.items()}
+    spp = {n: spp_for_budget(budget, *pts) for n, pts in lines.items()}
     return EqualTime(budget, predicted, sorted(predicted, key=predicted.get), spp)
+
+
+def spp_for_budget(budget: float, spp, seconds) -> int:
+    """spp whose render takes ``budget`` seconds, read off the measured ladder:
+    log-log interpolation between rungs (times made non-decreasing), and
+    proportional scaling beyond its ends. A straight-line fit of time against
+    spp is useless at small images, where launch overhead dominates: its
+    slope is ~0 and the solved spp explodes (seen: 550 spp for a 4 ms budget
+    that took 150 ms)."""
+    spp = np.asarray(spp, float)
+    t = np.maximum.accumulate(np.asarray(seconds, float))
+    if budget <= t[0]:
+        return max(1, int(spp[0] * budget / t[0]))
+    if budget >= t[-1]:
+        return max(1, int(spp[-1] * budget / t[-1]))
+    return max(1, int(round(np.exp(np.interp(np.log(budget), np.log(t), np.log(spp))))))
 
 
 def equal_time_measure(plan: EqualTime, units: dict, reference) -> EqualTime:
