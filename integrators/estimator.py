@@ -62,8 +62,10 @@ def read_depths(props: mi.Properties) -> tuple[int, int]:
 def mis_weight(pdf_a, pdf_b):
     """Power heuristic p_a² / (p_a² + p_b²), 0 where undefined (as `path`)."""
     a, b = dr.square(pdf_a), dr.square(pdf_b)
-    w = a / (a + b)
-    return dr.detach(dr.select(dr.isfinite(w), w, 0))
+    total = a + b
+    # (select the divisor too: scalar variants divide Python floats, which raise)
+    w = a / dr.select(total > 0, total, 1.0)
+    return dr.detach(dr.select((total > 0) & dr.isfinite(w), w, 0))
 
 
 class IlluminationEstimator(mi.SamplingIntegrator):

@@ -18,8 +18,11 @@ SCENES = ROOT / "scenes"
 #: Variants every rendering test runs in (scalar with tiny images).
 VARIANTS = ["scalar_rgb", "llvm_ad_rgb"]
 
-#: The estimators of this package.
+#: The hemisphere estimators (the foundation issue's pair).
 ESTIMATORS = ["uniform_hemisphere", "cosine_hemisphere"]
+
+#: Every estimator of this package.
+ALL_ESTIMATORS = ESTIMATORS + ["bsdf_sampling", "emitter_sampling", "mis"]
 
 
 @pytest.fixture(params=VARIANTS)

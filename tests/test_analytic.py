@@ -13,7 +13,7 @@ import pytest
 
 from validation import renders, statistics
 
-from conftest import ESTIMATORS, SCENES, batch, small, wrong_pdf_integrator
+from conftest import ALL_ESTIMATORS, ESTIMATORS, SCENES, batch, small, wrong_pdf_integrator
 
 ALPHA = 0.001
 FLOAT_RTOL = 1e-5
@@ -52,7 +52,7 @@ def furnace_sphere(variant, integrator, max_depth):
 
 
 @pytest.mark.parametrize("max_depth", [2, 3, -1])
-@pytest.mark.parametrize("name", ESTIMATORS)
+@pytest.mark.parametrize("name", ALL_ESTIMATORS)
 def test_furnace_sphere_is_albedo_times_radiance(variant, name, max_depth):
     sphere, background = furnace_sphere(variant, name, max_depth)
     ok, (mean, half) = within_bound(sphere, ALBEDO * RADIANCE)
@@ -84,9 +84,12 @@ def furnace_interior(variant, integrator, max_depth, albedo):
 
 
 @pytest.mark.parametrize("max_depth", [1, 2, 5, 8, -1])
-@pytest.mark.parametrize("name", ESTIMATORS)
+@pytest.mark.parametrize("name", ALL_ESTIMATORS)
 def test_interior_furnace_closed_form(variant, name, max_depth):
     """Depth convention, recursion and Russian roulette (rr_depth 5) at once."""
+    if name == "mis" and max_depth != 1:
+        pytest.skip("mis reproduces Mitsuba's path here, which misses this closed form "
+                    "by +0.11% (see test_path_misses_the_interior_closed_form)")
     albedo = 0.6
     values = furnace_interior(variant, name, max_depth, albedo)
     exact = interior_exact(max_depth, albedo, RADIANCE)
@@ -101,3 +104,23 @@ def test_interior_furnace_rejects_wrong_pdf(variant, name):
     values = furnace_interior(variant, wrong_pdf_integrator(name), -1, 0.6)
     ok, (mean, half) = within_bound(values, interior_exact(-1, 0.6, RADIANCE))
     assert not ok, f"pdf x1.05 passed: {mean:.6f} ± {half:.2e}"
+
+
+def test_mis_reproduces_path_in_the_interior_furnace(llvm):
+    """Same seeds, same estimator: mis and Mitsuba's path agree to float
+    rounding (not just statistically) in the emitting furnace."""
+    a = furnace_interior(llvm, "mis", 5, 0.6)
+    b = furnace_interior(llvm, "path", 5, 0.6)
+    np.testing.assert_allclose(a, b, rtol=1e-5)
+
+
+def test_path_misses_the_interior_closed_form(llvm):
+    """Pinned upstream behaviour (Mitsuba 3.9.1): inside an emitting sphere,
+    `path` (emitter sampling of the sphere from points on it, MIS) lands
+    +0.11% above Le·Σ a^k at max_depth 2, far outside its standard error,
+    while our emitter_sampling (no MIS) and the hemisphere estimators are
+    exact. If this starts failing, upstream changed: re-enable mis above."""
+    values = furnace_interior(llvm, "path", 2, 0.6)
+    mean, half = statistics.mean_interval(values, ALPHA)
+    exact = interior_exact(2, 0.6, RADIANCE)
+    assert 5 * half < mean - exact < 5e-3 * exact, (mean, half, exact)
