@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import images, renders
+from . import images, renders, scenes
 
 #: Seeds of reference passes start here (estimator renders use small seeds).
 SEED_BASE = 1_000_000
@@ -96,8 +96,7 @@ def referenced_files(scene_path: str, defines: dict) -> list[str]:
         if not path.endswith(".xml"):
             return
         text = open(path, encoding="utf-8").read()
-        local = dict(re.findall(r'<default\s+name="([^"]+)"\s+value="([^"]*)"', text))
-        local.update(params)
+        local = {**scenes.defaults(path), **params}
         for ref in _FILE_REF.findall(text):
             for k, v in sorted(local.items(), key=lambda kv: -len(kv[0])):
                 ref = ref.replace(f"${k}", str(v))

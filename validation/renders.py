@@ -65,8 +65,10 @@ def resolve_defines(path: str | os.PathLike, envmap_policy: str = "clamp", **def
     """
     import envmaps
 
+    from .scenes import defaults
+
     path = os.fspath(path)
-    default = _default(path, "envmap")
+    default = defaults(path).get("envmap")
     if "envmap" in defines or default is not None:
         value = str(defines.get("envmap", default))
         if value not in envmaps.entries() and not os.path.isabs(value):
@@ -81,16 +83,13 @@ def load_scene(path: str | os.PathLike, envmap_policy: str = "clamp", **defines)
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"scene file not found: {path}")
-    return mi.load_file(path, **resolve_defines(path, envmap_policy, **defines))
+    return load_resolved(path, resolve_defines(path, envmap_policy, **defines))
 
 
-def _default(path: str, name: str) -> str | None:
-    """Value of ``<default name="NAME" value="..."/>`` in a scene file, if any."""
-    import re
-
-    with open(path, encoding="utf-8") as f:
-        m = re.search(rf'<default\s+name="{name}"\s+value="([^"]*)"', f.read())
-    return m.group(1) if m else None
+def load_resolved(path: str | os.PathLike, resolved: dict) -> mi.Scene:
+    """Load a scene with ``$``-parameters already passed through
+    :func:`resolve_defines` (so the envmap is not read and checked again)."""
+    return mi.load_file(os.fspath(path), **resolved)
 
 
 def _xml_value(value) -> str:

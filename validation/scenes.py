@@ -34,6 +34,15 @@ def _header(path: str) -> str:
     return m.group(1)
 
 
+_DEFAULT = re.compile(r'<default\s+name="([^"]+)"\s+value="([^"]*)"')
+
+
+def defaults(path: str) -> dict[str, str]:
+    """The ``<default name=... value=...>`` $-parameters declared in an XML file."""
+    with open(path, encoding="utf-8") as f:
+        return dict(_DEFAULT.findall(f.read()))
+
+
 def _listed(header: str, label: str) -> tuple[str, ...]:
     m = re.search(rf"^\s*{label}:\s*(.+)$", header, re.M)
     return tuple(m.group(1).split()) if m else ()

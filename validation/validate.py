@@ -56,7 +56,7 @@ def validate_scene(run: profiles.SceneRun, profile: profiles.Profile, estimators
                    progress: Progress) -> dict:
     info = scenes.index()[run.scene]
     defines = renders.resolve_defines(info.path, **{"res": run.res, **run.defines})
-    scene = renders.load_scene(info.path, **{"res": run.res, **run.defines})
+    scene = renders.load_resolved(info.path, defines)
     params = {"max_depth": run.max_depth}
     names = [e for e in estimators if e not in info.refused_by]
     integrators = {e: renders.make_integrator(e, params) for e in names}
