@@ -81,34 +81,31 @@ def run(scene, scene_key: str, integrators: dict, ladder, k: int, out_dir: str,
             if progress:
                 progress(f"{scene_name} {spp} spp: loaded", steps=k * len(names))
             continue
-        shots = {n: [] for n in names}
-        times = {n: [] for n in names}
-        for i in range(k):
-            order = names[i % len(names):] + names[:i % len(names)]  # rotate
-            for n in order:
-                # distinct seeds on every rung: rungs are independent samples
-                out = renders.render(scene, integrators[n], spp,
-                                     seed=SEED_BASE + 10_000 * rung + i)
-                shots[n].append(out.image)
-                times[n].append(out.seconds)
-                if progress:
-                    progress(f"{scene_name} {n} {spp} spp #{i + 1}/{k}")
-        result[spp] = {n: Unit(n, spp, np.stack(shots[n]), times[n]) for n in names}
+        # distinct seeds on every rung: rungs are independent samples
+        result[spp] = interleaved(scene, integrators, dict.fromkeys(names, spp), k,
+                                  SEED_BASE + 10_000 * rung, progress, scene_name)
         _save(path, key, spp, result[spp])
     return result
+
+
+def interleaved(scene, integrators: dict, spp: dict[str, int], k: int, first_seed: int,
+                progress=None, label: str = "") -> dict[str, Unit]:
+    """K renders of each estimator at its own spp (seeds first_seed + i), the
+    estimators rotated every round (A B C, B C A, …) so drift hits all alike."""
+    names = list(integrators)
+    shots = {n: [] for n in names}
+    times = {n: [] for n in names}
+    for i in range(k):
+        for n in names[i % len(names):] + names[:i % len(names)]:
+            out = renders.render(scene, integrators[n], spp[n], seed=first_seed + i)
+            shots[n].append(out.image)
+            times[n].append(out.seconds)
+            if progress:
+                progress(f"{label} {n} {spp[n]} spp #{i + 1}/{k}")
+    return {n: Unit(n, spp[n], np.stack(shots[n]), times[n]) for n in names}
 
 
 def equal_time_renders(scene, integrators: dict, spp: dict[str, int], k: int,
                        progress=None) -> dict[str, Unit]:
     """K renders of each estimator at its own spp (the equal-time check)."""
-    shots = {n: [] for n in integrators}
-    times = {n: [] for n in integrators}
-    names = list(integrators)
-    for i in range(k):
-        for n in names[i % len(names):] + names[:i % len(names)]:
-            out = renders.render(scene, integrators[n], spp[n], seed=500_000 + i)
-            shots[n].append(out.image)
-            times[n].append(out.seconds)
-            if progress:
-                progress(f"equal time {n} {spp[n]} spp #{i + 1}/{k}")
-    return {n: Unit(n, spp[n], np.stack(shots[n]), times[n]) for n in names}
+    return interleaved(scene, integrators, spp, k, 500_000, progress, "equal time")
