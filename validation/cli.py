@@ -120,7 +120,7 @@ def _report(args) -> int:
 
 
 def _validate(args) -> int:
-    from . import profiles, results, scenes, validate
+    from . import profiles, results, validate
 
     profile = profiles.PROFILES[args.profile]
     known = {r.scene for r in profile.runs}

@@ -88,7 +88,7 @@ def _scene_section(scene: dict, run_dir: str, palette: dict) -> str:
     et = scene.get("equal_time") or {}
     ref_caption = (f"reference (path)<br>{scene['reference']['spp']} spp, "
                    f"{scene['reference']['seconds']:.1f} s")
-    row_et, row_spp, errors, err_names = [], [], [], []
+    row_et, row_spp, errors, err_names, renders_ = [], [], [], [], []
     for est in scene["estimators"]:
         name, top = est["name"], est["runs"][-1]
         f_et = os.path.join(img_dir, f"{name}_equal_time.exr")
@@ -103,6 +103,7 @@ def _scene_section(scene: dict, run_dir: str, palette: dict) -> str:
                                f"{top['median_seconds'] * 1e3:.1f} ms"))
         errors.append(relative_error(x, ref))
         err_names.append(name)
+        renders_.append(x)
 
     positive = np.concatenate([e[e > 0].ravel() for e in errors] + [np.array([1e-3])])
     vmax = max(float(np.percentile(positive, 99)), 1e-2)
@@ -115,13 +116,11 @@ def _scene_section(scene: dict, run_dir: str, palette: dict) -> str:
     y, x0, size = worst_window(errors)
     crop = lambda a: a[y:y + size, x0:x0 + size]  # noqa: E731
     crops = [_figure(_png_uri(_enlarge(images.tonemap(crop(ref), ev))), "reference")]
-    for name, e in zip(err_names, errors):
-        x, _ = images.read_exr(os.path.join(
-            img_dir, f"{name}_spp{scene['estimators'][0]['runs'][-1]['spp']}.exr"))
+    for name, x in zip(err_names, renders_):
         crops.append(_figure(_png_uri(_enlarge(images.tonemap(crop(x), ev))), name))
 
     rows = []
-    best = {k: min(e["runs"][-1][k] for e in scene["estimators"]) for k in ("relmse",)}
+    best_rel = min(e["runs"][-1]["relmse"] for e in scene["estimators"])
     best_eff = max(e["runs"][-1]["efficiency"] for e in scene["estimators"])
     best_sps = max(e["runs"][-1]["samples_per_second"] for e in scene["estimators"])
     for est in scene["estimators"]:
@@ -131,7 +130,7 @@ def _scene_section(scene: dict, run_dir: str, palette: dict) -> str:
         rows.append(
             f"<tr><td><span class=sw style='background:{palette[est['name']]}'></span>"
             f"{html.escape(est['name'])}</td>"
-            f"<td>{_fmt(top['relmse'])} ({_fmt(top['relmse'] / best['relmse'] if best['relmse'] else None, '.2f')}×)</td>"
+            f"<td>{_fmt(top['relmse'])} ({_fmt(top['relmse'] / best_rel if best_rel else None, '.2f')}×)</td>"
             f"<td>{top['bias']:+.2e} ± {top['bias_se']:.1e}</td>"
             f"<td class={'ok' if u['passed'] else 'bad'}>{verdict} ({100 * u['pass_fraction']:.1f} %)</td>"
             f"<td>{slope}</td>"
@@ -250,8 +249,6 @@ relMSE = mean (x−r)²/(r²+0.01); efficiency = 1/(relMSE·time).</p>
     out_dir = os.path.join(run_dir, "report")
     os.makedirs(out_dir, exist_ok=True)
     target = os.path.join(out_dir, "index.html")
-    for name, text in (("index.html", page), ("summary.md", results.summary(res))):
-        with images.atomic_path(os.path.join(out_dir, name)) as tmp:
-            with open(tmp, "w", encoding="utf-8") as f:
-                f.write(text)
+    results.write_text(target, page)
+    results.write_text(os.path.join(out_dir, "summary.md"), results.summary(res))
     return target

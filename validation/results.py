@@ -33,14 +33,15 @@ DEFINITIONS = {
 }
 
 
-def _write_text(path: str, text: str) -> None:
+def write_text(path: str, text: str) -> None:
+    """Write ``text`` to ``path`` atomically (UTF-8)."""
     with images.atomic_path(path) as tmp:
         with open(tmp, "w", encoding="utf-8") as f:
             f.write(text)
 
 
 def write_json(path: str, results: dict) -> None:
-    _write_text(path, json.dumps(results, indent=2, allow_nan=False, default=float) + "\n")
+    write_text(path, json.dumps(results, indent=2, allow_nan=False, default=float) + "\n")
 
 
 CSV_FIELDS = ["scene", "estimator", "spp", "renders", "relmse", "mse", "mape", "bias",
@@ -57,7 +58,7 @@ def write_csv(path: str, results: dict) -> None:
             for run in est["runs"]:
                 w.writerow({"scene": scene["name"], "estimator": est["name"],
                             **{k: run[k] for k in CSV_FIELDS[2:]}})
-    _write_text(path, buf.getvalue())
+    write_text(path, buf.getvalue())
 
 
 def summary(results: dict) -> str:
@@ -115,4 +116,4 @@ def write_junit(path: str, results: dict) -> None:
                        f'{escape(c["message"])}</failure>')
         out.append("  </testcase>")
     out.append("</testsuite>")
-    _write_text(path, "\n".join(out) + "\n")
+    write_text(path, "\n".join(out) + "\n")

@@ -215,10 +215,7 @@ def validate(profile_name: str = "quick", scene_names=None, estimators=None,
     }
     results.write_json(os.path.join(out_dir, "results.json"), out)
     results.write_csv(os.path.join(out_dir, "results.csv"), out)
-    text = results.summary(out)
-    with images.atomic_path(os.path.join(out_dir, "summary.md")) as tmp:
-        with open(tmp, "w", encoding="utf-8") as f:
-            f.write(text)
+    results.write_text(os.path.join(out_dir, "summary.md"), results.summary(out))
     from . import report  # the last stage: reads what was just written
 
     report.build(out_dir)
