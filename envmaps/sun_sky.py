@@ -90,13 +90,6 @@ def bake(sun_elevation_deg: float = 30.0, sun_azimuth_deg: float = 40.0,
     return (rgb * scale).astype(np.float32)
 
 
-def dr_zeros(mi):
-    """A reference interaction at the origin (infinite emitters ignore it)."""
-    import drjit as dr
-
-    return dr.zeros(mi.Interaction3f)
-
-
 def energy_error(rgb: np.ndarray, sun_elevation_deg: float = 30.0,
                  sun_azimuth_deg: float = 40.0, turbidity: float = 3.0,
                  scale: float = 1.0, samples: int = 1 << 22, variant: str = "llvm_ad_rgb"):
@@ -107,7 +100,9 @@ def energy_error(rgb: np.ndarray, sun_elevation_deg: float = 30.0,
     """
     with _variant(variant) as mi:
         em = emitter(mi, sun_elevation_deg, sun_azimuth_deg, turbidity)
-        it = dr_zeros(mi)
+        import drjit as dr
+
+        it = dr.zeros(mi.Interaction3f)  # any reference point: the sky is infinite
         u = np.random.default_rng(0).random((2, samples))
         ds, weight = em.sample_direction(it, mi.Point2f(u[0], u[1]))
         cos = np.clip(np.array(ds.d.y), 0, None)

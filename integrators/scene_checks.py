@@ -53,7 +53,6 @@ class UnreachableContentError(ValueError):
         )
 
 
-_PATH = "render it with Mitsuba's 'path' integrator"
 _FOR_DELTA_LIGHTS = "use emitter_sampling or mis (or Mitsuba's 'path')"
 _FOR_DELTA_LOBES = "use bsdf_sampling or mis (or Mitsuba's 'path')"
 
