@@ -9,15 +9,16 @@ from .bsdf_sampling import BSDFSamplingIntegrator
 # ----------------------------- Strategy ---------------------------------
 
 
-def sample_emitter_direction(scene, si, u):
+def sample_emitter_direction(scene, si, u, active=True):
     """(DirectionSample, L_e/p) towards a scene emitter (importance-sampled
     envmap, area lights by area, delta lights exactly), visibility tested."""
-    return scene.sample_emitter_direction(si, u, True)
+    return scene.sample_emitter_direction(si, u, True, active)
 
 
-def emitter_direction_pdf(scene, si, ds):
-    """Solid-angle density of :func:`sample_emitter_direction` for ``ds``."""
-    return scene.pdf_emitter_direction(si, ds)
+def emitter_direction_pdf(scene, ref, ds, active=True):
+    """Solid-angle density of :func:`sample_emitter_direction` for ``ds``
+    seen from ``ref`` (0 for delta lights)."""
+    return scene.pdf_emitter_direction(ref, ds, active)
 
 
 # ------------------------------ Plugin ----------------------------------
@@ -67,6 +68,8 @@ class EmitterSamplingIntegrator(BSDFSamplingIntegrator):
     plugin_name = "emitter_sampling"
     reachable = frozenset({"delta_bsdf", "delta_emitter"})
     use_nee = True
+    sample_emitter = staticmethod(sample_emitter_direction)
+    emitter_pdf = staticmethod(emitter_direction_pdf)
 
 
 mi.register_integrator("emitter_sampling",

@@ -104,6 +104,11 @@ class IlluminationEstimator(mi.SamplingIntegrator):
     use_nee = False
     #: Weight NEE and BSDF-sampled emitter hits by the power heuristic?
     use_mis = False
+    #: The emitter strategy pair, set by subclasses with ``use_nee``
+    #: (see emitter_sampling.py): ``sample_emitter(scene, si, u, active) ->
+    #: (ds, L_e/p)`` and ``emitter_pdf(scene, ref, ds, active) -> p``.
+    sample_emitter = None
+    emitter_pdf = None
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)
@@ -250,13 +255,13 @@ class IlluminationEstimator(mi.SamplingIntegrator):
             # cannot (seen by the camera, or through a delta lobe).
             return dr.select(prev_delta, 1.0, 0.0)
         ds = mi.DirectionSample3f(scene, si, prev_si)
-        em_pdf = scene.pdf_emitter_direction(prev_si, ds, dr.select(prev_delta, False, True))
+        em_pdf = self.emitter_pdf(scene, prev_si, ds, dr.select(prev_delta, False, True))
         return dr.select(prev_delta, 1.0, mis_weight(prev_pdf, em_pdf))
 
     def emitter_sample(self, scene, sampler, si, bsdf, ctx):
         """f cos · L_e / p_e for one emitter sample (MIS-weighted if use_mis)."""
         active_em = mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-        ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, active_em)
+        ds, em_weight = self.sample_emitter(scene, si, sampler.next_2d(), active_em)
         wo = si.to_local(ds.d)
         f_cos, bsdf_pdf = bsdf.eval_pdf(ctx, si, wo, active_em)
         w = mi.Float(1)

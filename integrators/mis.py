@@ -6,6 +6,7 @@ from __future__ import annotations
 import mitsuba as mi
 
 from .bsdf_sampling import BSDFSamplingIntegrator
+from .emitter_sampling import emitter_direction_pdf, sample_emitter_direction
 from .estimator import mis_weight  # noqa: F401  (the power heuristic, re-exported)
 
 # ----------------------------- Strategy ---------------------------------
@@ -56,6 +57,8 @@ class MISIntegrator(BSDFSamplingIntegrator):
     reachable = frozenset({"delta_bsdf", "transmission", "delta_emitter"})
     use_nee = True
     use_mis = True
+    sample_emitter = staticmethod(sample_emitter_direction)
+    emitter_pdf = staticmethod(emitter_direction_pdf)
 
 
 mi.register_integrator("mis", lambda props, cls=MISIntegrator: cls(props))
