@@ -3,7 +3,6 @@
 import numpy as np
 import pytest
 
-import drjit as dr
 import mitsuba as mi
 
 import integrators

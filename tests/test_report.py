@@ -2,7 +2,6 @@
 self-contained page, and (marked `browser`) the page as Chromium shows it."""
 
 import base64
-import copy
 import io
 import json
 import os
