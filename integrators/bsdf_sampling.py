@@ -43,6 +43,10 @@ class BSDFSamplingIntegrator(IlluminationEstimator):
      * - hide_emitters
        - |bool|
        - Hide directly visible emitters. (Default: |false|)
+     * - allow_unreachable
+       - |bool|
+       - Render content this strategy cannot reach instead of refusing the
+         scene; the image is then biased and a warning says so. (Default: |false|)
 
     At every vertex draws ω from the BSDF's own sampling routine, so the weight
     f cos/p is near-constant for every lobe it samples well — including delta

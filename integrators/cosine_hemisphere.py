@@ -48,6 +48,10 @@ class CosineHemisphereIntegrator(IlluminationEstimator):
      * - hide_emitters
        - |bool|
        - Hide directly visible emitters. (Default: |false|)
+     * - allow_unreachable
+       - |bool|
+       - Render content this strategy cannot reach instead of refusing the
+         scene; the image is then biased and a warning says so. (Default: |false|)
 
     At every vertex draws ω with density p(ω) = cos θ / π, so the weight
     f_r cos θ / p = π f_r: for a Lambertian BSDF (f_r = ρ/π) it is exactly ρ and

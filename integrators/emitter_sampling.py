@@ -43,6 +43,10 @@ class EmitterSamplingIntegrator(BSDFSamplingIntegrator):
      * - hide_emitters
        - |bool|
        - Hide directly visible emitters. (Default: |false|)
+     * - allow_unreachable
+       - |bool|
+       - Render content this strategy cannot reach instead of refusing the
+         scene; the image is then biased and a warning says so. (Default: |false|)
 
     Direct light comes *only* from emitter samples: at every vertex with a
     smooth BSDF one direction is drawn from the scene's emitters

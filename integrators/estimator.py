@@ -34,7 +34,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from . import scene_checks
+from . import passes, scene_checks
 
 #: ``max_depth = -1`` (unbounded) as a depth bound, as in Mitsuba's path.
 UNBOUNDED = 0xFFFFFFFF
@@ -92,6 +92,13 @@ class IlluminationEstimator(mi.SamplingIntegrator):
        - |bool|
        - Hide directly visible emitters (area lights and the environment).
          (Default: |false|)
+
+     * - allow_unreachable
+       - |bool|
+       - Render scenes holding content this strategy cannot reach (delta
+         lights or lobes, transmission) instead of refusing them. The image
+         is then biased (that content is missing); a warning names it and
+         :attr:`unreachable` lists it. (Default: |false|)
     """
 
     #: Name under which the subclass is registered (used in messages).
@@ -117,6 +124,15 @@ class IlluminationEstimator(mi.SamplingIntegrator):
                 f"'{self.plugin_name}' does not track polarization (variant "
                 f"'{mi.variant()}'); use an *_rgb, *_spectral or *_mono variant")
         self.max_depth, self.rr_depth = read_depths(props)
+        self.allow_unreachable = props.get("allow_unreachable", False)
+        if not isinstance(self.allow_unreachable, bool):
+            raise TypeError("allow_unreachable must be a boolean (<boolean name="
+                            "\"allow_unreachable\" value=\"true\"/>), got "
+                            f"{type(self.allow_unreachable).__name__} "
+                            f"{self.allow_unreachable!r}")
+        #: What the last rendered scene held that this strategy misses (only
+        #: non-empty with ``allow_unreachable``: the image lacks it).
+        self.unreachable: list[scene_checks.Problem] = []
 
     # ------------------------- Strategy (pure) --------------------------
 
@@ -142,12 +158,45 @@ class IlluminationEstimator(mi.SamplingIntegrator):
         weight = dr.select(pdf > 0, f_cos / pdf, 0)
         return wo, weight, pdf, mi.Bool(False), mi.Float(1)
 
-    # ------------------------ Scene validation --------------------------
+    # ----------------- Scene validation and pass splitting ----------------
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
-        # Refuse scenes this strategy would render wrong, before any work.
-        scene_checks.require_reachable(scene, self.plugin_name, self.reachable)
-        return super().render(scene, sensor, seed, spp, develop, evaluate)
+        if getattr(self, "_in_pass", False):
+            # (Mitsuba's render calls back into this override: the outer call
+            # has checked the scene and planned the passes already.)
+            return super().render(scene, sensor, seed, spp, develop, evaluate)
+
+        # Refuse scenes this strategy would render wrong, before any work,
+        # unless the user opted into the biased image.
+        self.unreachable = scene_checks.check_reachable(
+            scene, self.plugin_name, self.reachable, self.allow_unreachable)
+
+        # Split wavefronts beyond 32 bits into passes (see passes.py).
+        sensor_ = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
+        spp = spp or sensor_.sampler().sample_count()
+        plan = passes.plan_passes(passes.film_lanes(sensor_.film()), spp)
+        self._in_pass = True
+        try:
+            return self._render_passes(scene, sensor, seed, spp, plan, develop, evaluate)
+        finally:
+            self._in_pass = False
+
+    def _render_passes(self, scene, sensor, seed, spp, plan, develop, evaluate):
+        if len(plan) == 1:
+            return super().render(scene, sensor, seed, spp, develop, evaluate)
+        if not develop:
+            raise ValueError(
+                f"{self.plugin_name}: {spp} spp need {len(plan)} passes (over 2^32 "
+                "samples), which cannot accumulate into an undeveloped film; "
+                "render with develop=True or fewer spp per call")
+        image = None
+        for i, n in enumerate(plan):
+            # Σ_i (spp_i / spp) · image_i: the passes' weighted mean
+            part = super().render(scene, sensor, passes.pass_seed(seed, i), n, True, True)
+            part = part * (n / spp)
+            image = part if image is None else image + part
+            dr.eval(image)
+        return image
 
     # --------------------------- Estimator ------------------------------
 

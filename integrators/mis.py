@@ -36,6 +36,10 @@ class MISIntegrator(BSDFSamplingIntegrator):
      * - hide_emitters
        - |bool|
        - Hide directly visible emitters. (Default: |false|)
+     * - allow_unreachable
+       - |bool|
+       - Render content this strategy cannot reach instead of refusing the
+         scene; the image is then biased and a warning says so. (Default: |false|)
 
     At every vertex: one emitter sample (with shadow ray) and one BSDF sample,
     each weighted by the power heuristic against the other technique's pdf;

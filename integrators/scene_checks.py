@@ -50,6 +50,8 @@ class UnreachableContentError(ValueError):
         super().__init__(
             f"integrator '{integrator}' cannot render this scene without bias:"
             f"\n  - {shown}{tail}"
+            f"\n(to render the biased image anyway, knowing it lacks this content, "
+            f"set <boolean name=\"allow_unreachable\" value=\"true\"/> on the integrator)"
         )
 
 
@@ -164,6 +166,24 @@ def unreachable(scene) -> list[Problem]:
 
 def require_reachable(scene, integrator: str, allowed: frozenset[str] = frozenset()) -> None:
     """Raise :class:`UnreachableContentError` unless every problem kind is allowed."""
+    check_reachable(scene, integrator, allowed, accept=False)
+
+
+def check_reachable(scene, integrator: str, allowed: frozenset[str] = frozenset(),
+                    accept: bool = False) -> list[Problem]:
+    """The problems of ``scene`` whose kind is not in ``allowed``.
+
+    Raises :class:`UnreachableContentError` if there are any, unless ``accept``
+    (the user's ``allow_unreachable``): then logs a warning that the image
+    will be biased, naming what is missing, and returns them.
+    """
     problems = [p for p in unreachable(scene) if p.kind not in allowed]
-    if problems:
+    if problems and not accept:
         raise UnreachableContentError(integrator, problems)
+    if problems:
+        names = "; ".join(p.what for p in problems[:5])
+        more = f" (and {len(problems) - 5} more)" if len(problems) > 5 else ""
+        mi.Log(mi.LogLevel.Warn,
+               f"{integrator} with allow_unreachable=true: the image is BIASED, it "
+               f"lacks the contribution of {names}{more}")
+    return problems

@@ -47,6 +47,10 @@ class UniformHemisphereIntegrator(IlluminationEstimator):
      * - hide_emitters
        - |bool|
        - Hide directly visible emitters. (Default: |false|)
+     * - allow_unreachable
+       - |bool|
+       - Render content this strategy cannot reach instead of refusing the
+         scene; the image is then biased and a warning says so. (Default: |false|)
 
     At every vertex draws ω uniformly over the hemisphere, p(ω) = 1/(2π), and
     weights the path by f_r(ω, ω_o) cos θ · 2π. Radiance is gathered only where

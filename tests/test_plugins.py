@@ -233,3 +233,37 @@ def test_polarized_variant_is_refused_clearly():
                 mi.load_dict({"type": name})
     finally:
         renders.set_variant("llvm_ad_rgb")
+
+
+# ------------------------- allow_unreachable opt-in --------------------------
+
+@pytest.mark.parametrize("name", ESTIMATORS)
+def test_refusal_names_the_opt_in(llvm, name):
+    scene = tiny_scene(floor=disk({"type": "diffuse"}),
+                       key_light=DELTA_EMITTERS["point"]())
+    assert 'allow_unreachable" value="true"' in str(refusal(scene, name))
+
+
+@pytest.mark.parametrize("name", ESTIMATORS)
+def test_allow_unreachable_renders_the_biased_image_and_says_what_it_lacks(llvm, name):
+    # A diffuse disk under a point light and a dim environment: the opt-in
+    # image holds only the environment's share, measurably below path's.
+    dim = {"type": "constant", "radiance": {"type": "rgb", "value": 0.1}}
+    scene = tiny_scene(floor=disk({"type": "diffuse"}), env=dim,
+                       key_light={**DELTA_EMITTERS["point"](), "intensity": 10.0})
+    integrator = renders.make_integrator(name, {"allow_unreachable": True, "max_depth": 2})
+    biased = renders.render(scene, integrator, 256).image
+    unbiased = renders.render(scene, renders.make_integrator("path", {"max_depth": 2}),
+                              256).image
+    assert np.isfinite(biased).all() and biased.min() >= 0
+    assert [p.kind for p in integrator.unreachable] == ["delta_emitter"]
+    assert "'key_light'" in integrator.unreachable[0].what
+    assert biased.mean() < 0.8 * unbiased.mean()
+    # and a scene it can reach leaves the list empty again
+    renders.render(tiny_scene(floor=disk({"type": "diffuse"}), env=LIGHT), integrator, 1)
+    assert integrator.unreachable == []
+
+
+def test_allow_unreachable_must_be_a_boolean(llvm):
+    with pytest.raises(Exception, match="allow_unreachable must be a boolean"):
+        renders.make_integrator("cosine_hemisphere", {"allow_unreachable": "yes"})

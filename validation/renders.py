@@ -16,6 +16,7 @@ import numpy as np
 import integrators  # noqa: F401  (configures LLVM before drjit, registers plugins)
 import drjit as dr
 import mitsuba as mi
+from integrators import passes
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
 
@@ -116,11 +117,20 @@ def render(scene: mi.Scene, integrator: mi.Integrator, spp: int, seed: int = 0) 
     """Render ``scene`` with ``integrator`` at ``spp`` samples/pixel and ``seed``."""
     if spp < 1:
         raise ValueError(f"spp must be >= 1, got {spp}")
+    # mcillum plugins split over-long wavefronts themselves; Mitsuba's own
+    # integrators fail when spp does not divide into their pass count.
+    plan = [spp] if hasattr(integrator, "unreachable") else passes.plan_passes(
+        passes.film_lanes(scene.sensors()[0].film()), spp)
     start = time.perf_counter()
-    image = mi.render(scene, integrator=integrator, spp=spp, seed=seed)
+    image = None
+    for i, n in enumerate(plan):
+        part = mi.render(scene, integrator=integrator, spp=n, seed=passes.pass_seed(seed, i))
+        image = part if image is None else image + (part - image) * (n / sum(plan[:i + 1]))
+        dr.eval(image)
     dr.sync_thread()
     seconds = time.perf_counter() - start
-    return Render(np.array(image, dtype=np.float32), seconds, spp, seed)
+    return Render(np.array(image, dtype=np.float32), seconds, spp, seed,
+                  {"passes": len(plan)} if len(plan) > 1 else {})
 
 
 def root_cause(exc: BaseException) -> BaseException:
