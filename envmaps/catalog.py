@@ -86,7 +86,7 @@ def generate(name: str, **params) -> np.ndarray:
         raise safety.EnvmapError(f"bad parameters for map '{name}': {e}") from None
 
 
-def _cached(key: dict, make: Callable[[], np.ndarray]) -> str:
+def cached(key: dict, make: Callable[[], np.ndarray]) -> str:
     digest = hashlib.sha256(json.dumps(key, sort_keys=True, default=str).encode()).hexdigest()
     target = os.path.join(cache_dir(), f"{key.get('name', 'map')}-{digest[:16]}.exr")
     if not os.path.isfile(target):
@@ -101,7 +101,7 @@ def resolve(name_or_path: str | os.PathLike, policy: str = safety.DEFAULT_POLICY
     text = os.fspath(name_or_path)
     if text in PROCEDURAL:
         key = {"name": text, "params": params, "version": 1}
-        return _cached(key, lambda: generate(text, **params)), None
+        return cached(key, lambda: generate(text, **params)), None
     if params:
         raise safety.EnvmapError(f"parameters {sorted(params)} only apply to "
                                  f"procedural maps, not '{text}'")
@@ -112,4 +112,4 @@ def resolve(name_or_path: str | os.PathLike, policy: str = safety.DEFAULT_POLICY
     st = os.stat(path)
     key = {"name": os.path.splitext(os.path.basename(path))[0], "source": os.path.abspath(path),
            "size": st.st_size, "mtime": st.st_mtime, "policy": policy}
-    return _cached(key, lambda: rgb), report
+    return cached(key, lambda: rgb), report

@@ -186,10 +186,15 @@ def irradiance(rgb: np.ndarray, normal=(0, 1, 0)) -> np.ndarray:
     n = _unit(normal)
     d = directions(w, h, 4)                                   # (h, w, 16, 3)
     cos = np.clip(d @ n, 0, None).mean(axis=2)                # mean cosine in cell
-    bounds = np.clip((np.arange(h + 1) - 0.5) / (h - 1), 0, 1) * np.pi
+    return np.einsum("hwc,hw->c", rgb.astype(np.float64), cos * cell_solid_angles(h, w))
+
+
+def cell_solid_angles(height: int, width: int) -> np.ndarray:
+    """(H, W) solid angle Δφ·(cos θ₀ − cos θ₁) of each texel's cell, with
+    θ₀,₁ = (i ∓ ½)·π/(H − 1) clipped to [0, π] (Mitsuba's row convention)."""
+    bounds = np.clip((np.arange(height + 1) - 0.5) / (height - 1), 0, 1) * np.pi
     edges = np.cos(bounds)
-    solid = (edges[:-1] - edges[1:])[:, None] * (2 * np.pi / w)
-    return np.einsum("hwc,hw->c", rgb.astype(np.float64), cos * solid)
+    return np.repeat(((edges[:-1] - edges[1:]) * (2 * np.pi / width))[:, None], width, axis=1)
 
 
 def _umask() -> int:

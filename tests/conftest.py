@@ -47,11 +47,17 @@ def batch(scene, integrator, spp: int, k: int, first_seed: int = 0) -> np.ndarra
                      for seed in range(first_seed, first_seed + k)])
 
 
-def wrong_pdf_integrator(base: str = "cosine_hemisphere", factor: float = 1.05):
+def wrong_pdf_integrator(base: str = "cosine_hemisphere", factor: float = 1.05,
+                         props: "mi.Properties | None" = None):
     """A deliberately biased estimator: ``base`` with its pdf scaled by ``factor``.
 
     The class is built for the current variant (plugin classes bind to it).
     """
+    return wrong_pdf_class(base, factor)(props or mi.Properties())
+
+
+def wrong_pdf_class(base: str = "cosine_hemisphere", factor: float = 1.05):
+    """The class of :func:`wrong_pdf_integrator` (for mi.register_integrator)."""
     import importlib
 
     module = importlib.import_module(f"integrators.{base}")
@@ -63,4 +69,4 @@ def wrong_pdf_integrator(base: str = "cosine_hemisphere", factor: float = 1.05):
         plugin_name = f"{base}_pdf_x{factor}"
         pdf_local = staticmethod(lambda w: factor * pdf(w))
 
-    return WrongPdf(mi.Properties())
+    return WrongPdf

@@ -23,6 +23,25 @@ class SceneRun:
 
 
 @dataclass(frozen=True)
+class FailureCase:
+    """One case of the ``failures`` group (see validation/failures.py)."""
+
+    group: str                     # heavy_tail | unreachable | geometry | glossy
+    scene: str
+    res: int
+    spp: int
+    seeds: int                     # K independent renders per estimator
+    defines: dict = field(default_factory=dict)
+    label: str = ""
+    sweep: tuple = ()              # glossy: (parameter, values from wide to narrow)
+    max_depth: int = -1
+
+    @property
+    def id(self) -> str:
+        return f"failures.{self.group}.{self.label or self.scene}"
+
+
+@dataclass(frozen=True)
 class Profile:
     name: str
     runs: tuple[SceneRun, ...]
@@ -32,6 +51,7 @@ class Profile:
     reference_spp_per_pass: int = 64
     reference_max_spp: int = 1 << 16
     reference_max_seconds: float = 60.0
+    failures: tuple[FailureCase, ...] = ()
 
 
 QUICK = Profile("quick", (
@@ -43,7 +63,16 @@ QUICK = Profile("quick", (
     SceneRun("sky_sphere", 24, (4, 16, 64, 128), 12),
     SceneRun("probe_spheres", 8, (16, 64, 256, 1024), 16),
     SceneRun("cornell_box", 8, (32, 128, 512, 2048), 16),
-), reference_max_spp=1 << 18, reference_max_seconds=30.0)
+), reference_max_spp=1 << 18, reference_max_seconds=30.0, failures=(
+    # small bright sources: 64 seeds each, as the stability suite asks
+    FailureCase("heavy_tail", "sun_sky", 8, 16, 64),
+    *(FailureCase("heavy_tail", "probe_spheres", 8, 16, 64, {"envmap": probe},
+                  label=f"probe_spheres_{probe}") for probe in ("sunrise", "city", "interior")),
+    FailureCase("unreachable", "point_light", 8, 16, 16, max_depth=2),
+    FailureCase("unreachable", "smooth_glass", 8, 16, 16),
+    FailureCase("glossy", "glossy_sphere", 8, 16, 16, label="roughness",
+                sweep=("alpha", (0.5, 0.1, 0.02))),
+))
 
 FULL = Profile("full", (
     SceneRun("furnace_sphere", 64, (1, 4, 16, 64, 256), 16, max_depth=2),
@@ -55,6 +84,16 @@ FULL = Profile("full", (
     SceneRun("cornell_box", 16, (16, 64, 256, 1024, 4096), 16),
     SceneRun("phong_spheres", 32, (4, 16, 64, 256, 1024), 16),
     SceneRun("glossy_phong", 32, (4, 16, 64, 256, 1024), 16),
-), reference_max_spp=1 << 20, reference_max_seconds=600.0)
+), reference_max_spp=1 << 20, reference_max_seconds=600.0, failures=(
+    FailureCase("heavy_tail", "sun_sky", 32, 16, 128),
+    *(FailureCase("heavy_tail", "probe_spheres", 32, 16, 128, {"envmap": probe},
+                  label=f"probe_spheres_{probe}") for probe in ("sunrise", "city", "interior")),
+    FailureCase("unreachable", "point_light", 16, 64, 32, max_depth=2),
+    FailureCase("unreachable", "smooth_glass", 16, 64, 32),
+    FailureCase("glossy", "glossy_sphere", 24, 64, 16, label="roughness",
+                sweep=("alpha", (0.5, 0.3, 0.2, 0.1, 0.05, 0.02, 0.01))),
+    FailureCase("glossy", "glossy_phong", 24, 64, 16, label="phong_exponent",
+                sweep=("exponent", (10, 30, 100, 300, 1000, 3000))),
+))
 
 PROFILES = {p.name: p for p in (QUICK, FULL)}

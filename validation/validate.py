@@ -19,8 +19,8 @@ from dataclasses import asdict
 
 import numpy as np
 
-from . import analysis, images, profiles, references, renders, results, scenes, statistics
-from . import sweeps
+from . import analysis, failures, images, profiles, references, renders, results, scenes
+from . import statistics, sweeps
 
 ALPHA = statistics.ALPHA
 
@@ -178,12 +178,18 @@ def _remove_partials(*dirs: str) -> None:
 
 def validate(profile_name: str = "quick", scene_names=None, estimators=None,
              out_dir: str = "out/validate", cache_dir: str | None = None,
-             variant: str | None = None, progress: bool | None = None) -> dict:
+             variant: str | None = None, progress: bool | None = None,
+             groups=("scenes", "failures")) -> dict:
+    """Run a profile; ``groups`` picks its scene comparisons and/or its
+    failures group (``scene_names`` filters both, by scene name)."""
     import drjit as dr
     import mitsuba as mi
 
     profile = profiles.PROFILES[profile_name]
-    runs = [r for r in profile.runs if not scene_names or r.scene in scene_names]
+    runs = [r for r in profile.runs if "scenes" in groups
+            and (not scene_names or r.scene in scene_names)]
+    cases = [c for c in profile.failures if "failures" in groups
+             and (not scene_names or c.scene in scene_names)]
     estimators = list(estimators or profile.estimators)
     variant = renders.set_variant(variant)
     cache_dir = cache_dir or os.path.join(os.environ.get("MCILLUM_CACHE") or os.path.join(
@@ -191,7 +197,9 @@ def validate(profile_name: str = "quick", scene_names=None, estimators=None,
     os.makedirs(out_dir, exist_ok=True)
     _remove_partials(out_dir, cache_dir)   # left by a killed run (one writer at a time)
     start = time.perf_counter()
-    total = sum(r.renders * len(estimators) * (len(r.ladder) + 1) for r in runs)
+    total = sum(r.renders * len(estimators) * (len(r.ladder) + 1) for r in runs) + \
+        sum(c.seeds * (len(estimators) + 1) * max(1, len(c.sweep[1]) if c.sweep else 1)
+            for c in cases)
     bar = Progress(total, progress)
     checks: list = []
     scene_results = []
@@ -199,6 +207,8 @@ def validate(profile_name: str = "quick", scene_names=None, estimators=None,
         for run in runs:
             scene_results.append(validate_scene(run, profile, estimators, out_dir,
                                                 cache_dir, variant, checks, bar))
+        failure_results = failures.run(cases, estimators, out_dir, cache_dir, variant,
+                                       profile, checks, bar)
     finally:
         bar.close()
     out = {
@@ -210,7 +220,7 @@ def validate(profile_name: str = "quick", scene_names=None, estimators=None,
         "alpha": ALPHA, "reference_fraction": profile.reference_fraction,
         "definitions": results.DEFINITIONS,
         "wall_seconds": time.perf_counter() - start,
-        "scenes": scene_results, "checks": checks,
+        "scenes": scene_results, "failures": failure_results, "checks": checks,
         "passed": all(c["passed"] for c in checks),
     }
     results.write_json(os.path.join(out_dir, "results.json"), out)

@@ -1,0 +1,96 @@
+"""Heavy tails: how the error of one render is distributed over many seeds.
+
+An estimator that finds a small bright source (the sun) only by chance stays
+unbiased but puts most of its error into rare renders and rare pixels. Its
+mean relMSE then says little about a typical render, and a t-test on K renders
+trusts a sample variance that rests on a few of them. Definitions (used by
+``mcillum validate``'s failures group and written into results.json):
+
+* per-render relMSE: :func:`metrics.relmse` of each seed's image against the
+  reference; reported as median, 90th / 99th percentile (linear
+  interpolation) and maximum over the seeds.
+* firefly pixel: a pixel (of one render) whose luminance exceeds
+  ``FIREFLY_FACTOR`` × the reference luminance there, the reference floored at
+  ``FIREFLY_FLOOR`` × the reference image's mean luminance (so black pixels do
+  not count every speck). Firefly fraction = firefly pixels / all pixels of all
+  renders.
+* spp to match: the spp at which an estimator's expected relMSE equals that of
+  ``path`` at the same spp·(ratio), i.e. spp · mean relMSE(estimator) / mean
+  relMSE(path) — valid for unbiased estimators, whose relMSE falls as 1/spp —
+  with a bootstrap interval over seeds (heavy tails make it wide: say so).
+* reliable t-test: a per-pixel t-test on K renders whose sample skewness is
+  γ has, by the first Edgeworth term, a one-sided tail error of about
+  γ (2z² + 1) φ(z) / (6√K) at the critical value z. Where that exceeds the
+  tail level α_px/2 the test cannot tell a bias from a tail it has not seen
+  (the mean of a right-skewed sample is usually low, and so is its variance
+  estimate): :func:`unreliable` marks those pixels. At Šidák levels
+  (α_px ≈ 3e-5, z ≈ 4.2) and K = 64 this happens from γ ≈ 0.3 on.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import stats
+
+from . import metrics
+
+FIREFLY_FACTOR = 10.0
+FIREFLY_FLOOR = 0.01
+
+#: Rec. 709 luminance weights.
+_LUMA = np.array([0.2126, 0.7152, 0.0722])
+
+
+def luminance(image: np.ndarray) -> np.ndarray:
+    """(…, C≥3) linear RGB → (…) luminance."""
+    return np.asarray(image, np.float64)[..., :3] @ _LUMA
+
+
+def per_render_relmse(renders: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """relMSE of each render of a (K, H, W, C) stack against (H, W, C)."""
+    return np.array([metrics.relmse(x[..., :3], reference[..., :3]) for x in renders])
+
+
+def percentiles(values: np.ndarray) -> dict:
+    v = np.asarray(values, np.float64)
+    return {"mean": float(v.mean()), "median": float(np.median(v)),
+            "p90": float(np.percentile(v, 90)), "p99": float(np.percentile(v, 99)),
+            "max": float(v.max())}
+
+
+def firefly_mask(renders: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """(K, H, W) True where a render's pixel is a firefly (see module doc)."""
+    ref = luminance(reference)
+    floor = FIREFLY_FLOOR * max(float(ref.mean()), 1e-12)
+    return luminance(renders) > FIREFLY_FACTOR * np.maximum(ref, floor)
+
+
+def firefly_fraction(renders: np.ndarray, reference: np.ndarray) -> float:
+    return float(firefly_mask(renders, reference).mean())
+
+
+def unreliable(renders: np.ndarray, alpha_pixel: float) -> np.ndarray:
+    """(H, W) True where the per-pixel t-test at two-sided level
+    ``alpha_pixel`` is unreliable for these K renders (see module doc); the
+    skewness is the largest over the colour channels."""
+    x = np.asarray(renders, np.float64)[..., :3]
+    k = x.shape[0]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        gamma = np.nan_to_num(np.abs(stats.skew(x, axis=0, bias=False))).max(axis=-1)
+    z = stats.norm.isf(alpha_pixel / 2)
+    error = gamma * (2 * z * z + 1) * stats.norm.pdf(z) / (6 * np.sqrt(k))
+    return error > alpha_pixel / 2
+
+
+def spp_to_match(relmse_est: np.ndarray, relmse_ref: np.ndarray, spp: int,
+                 boot: int = 2000, level: float = 0.9, seed: int = 0) -> dict:
+    """spp an estimator needs for the mean relMSE ``path`` has at ``spp``,
+    assuming relMSE ∝ 1/spp, with a bootstrap ``level`` interval over seeds."""
+    a, b = np.asarray(relmse_est, np.float64), np.asarray(relmse_ref, np.float64)
+    point = spp * a.mean() / b.mean()
+    rng = np.random.default_rng(seed)
+    ia = rng.integers(0, a.size, (boot, a.size))
+    ib = rng.integers(0, b.size, (boot, b.size))
+    ratios = spp * a[ia].mean(axis=1) / b[ib].mean(axis=1)
+    lo, hi = np.percentile(ratios, [50 * (1 - level), 50 * (1 + level)])
+    return {"spp": float(point), "low": float(lo), "high": float(hi), "level": level}
