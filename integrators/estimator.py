@@ -168,8 +168,12 @@ class IlluminationEstimator(mi.SamplingIntegrator):
 
         # Refuse scenes this strategy would render wrong, before any work,
         # unless the user opted into the biased image.
+        # (warn once per scene, not once per render of it)
         self.unreachable = scene_checks.check_reachable(
-            scene, self.plugin_name, self.reachable, self.allow_unreachable)
+            scene, self.plugin_name, self.reachable, self.allow_unreachable,
+            warn=getattr(self, "_warned_for", None) != id(scene))
+        if self.unreachable:
+            self._warned_for = id(scene)
 
         # Split wavefronts beyond 32 bits into passes (see passes.py).
         sensor_ = scene.sensors()[sensor] if isinstance(sensor, int) else sensor

@@ -170,17 +170,17 @@ def require_reachable(scene, integrator: str, allowed: frozenset[str] = frozense
 
 
 def check_reachable(scene, integrator: str, allowed: frozenset[str] = frozenset(),
-                    accept: bool = False) -> list[Problem]:
+                    accept: bool = False, warn: bool = True) -> list[Problem]:
     """The problems of ``scene`` whose kind is not in ``allowed``.
 
     Raises :class:`UnreachableContentError` if there are any, unless ``accept``
-    (the user's ``allow_unreachable``): then logs a warning that the image
-    will be biased, naming what is missing, and returns them.
+    (the user's ``allow_unreachable``): then logs a warning (if ``warn``) that
+    the image will be biased, naming what is missing, and returns them.
     """
     problems = [p for p in unreachable(scene) if p.kind not in allowed]
     if problems and not accept:
         raise UnreachableContentError(integrator, problems)
-    if problems:
+    if problems and warn:
         names = "; ".join(p.what for p in problems[:5])
         more = f" (and {len(problems) - 5} more)" if len(problems) > 5 else ""
         mi.Log(mi.LogLevel.Warn,

@@ -135,3 +135,28 @@ def colour_bar(vmin: float, vmax: float, cmap: str, label: str) -> str:
     fig.colorbar(matplotlib.cm.ScalarMappable(norm=norm, cmap=cmap), cax=ax,
                  orientation="horizontal", label=label)
     return _svg(fig)
+
+
+def failure_sweep(case: dict, palette: dict) -> str:
+    """A glossy sweep: relMSE at fixed spp, and relMSE × seconds per render
+    (error at equal time, lower is better), against the swept parameter."""
+    sweep = case["sweep"]
+    values = np.asarray(sweep["values"], float)
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
+    for est in case["estimators"]:
+        rel = np.asarray(est["relmse"], float)
+        work = rel * np.asarray(est["seconds"], float)
+        for ax, y in zip(axes, (rel, work)):
+            ax.loglog(values, y, "o-", color=palette.get(est["name"], "#777777"), ms=4,
+                      label=est["name"])
+    for ax, label in zip(axes, (f"relMSE at {case['spp']} spp",
+                                "relMSE × seconds per render")):
+        ax.set_xlabel(sweep["param"])
+        ax.set_ylabel(label)
+        ax.grid(True, which="both", alpha=0.3)
+        if sweep["param"] == "alpha":
+            ax.invert_xaxis()         # narrower lobes to the right
+    axes[0].set_title(f"{case['label']}: error as the lobe narrows")
+    axes[1].set_title("error against time")
+    axes[1].legend(fontsize=7)
+    return _svg(fig)

@@ -34,7 +34,7 @@ import os
 
 import numpy as np
 
-from . import images, metrics, references, renders, scenes, statistics, sweeps, tails
+from . import images, references, renders, scenes, statistics, sweeps, tails
 
 ALPHA = statistics.ALPHA
 TAIL_RATIO = 10.0
@@ -46,22 +46,22 @@ FIRST_SEED = 700_000
 
 # ------------------------------- Verdicts ------------------------------------
 
-def verdict(renders_: np.ndarray, ref_moments, per_render: np.ndarray,
-            fireflies: float) -> tuple[str, bool, dict]:
+def verdict(renders_: np.ndarray, ref_moments, per_render: np.ndarray, fireflies: float,
+            fresh) -> tuple[str, bool, dict]:
     """(verdict, passed, numbers) of K renders of an estimator that rendered.
 
     The batch-means test (per pixel, Šidák; and the image mean) at ``ALPHA``.
-    Where it rejects only at pixels where it is unreliable for K renders
-    (:func:`tails.unreliable`: skewed beyond what K can carry) while the
-    image-mean test passes, the renders cannot tell a bias from a tail they
-    have not seen: "K too small to tell" (not a failure, never "fine").
+    If it rejects, ``fresh()`` gives K new renders and the rejection must
+    replicate (:func:`replicated_test`); if it does not, the first K renders
+    could not tell a bias from a tail they had not seen: "K too small to
+    tell" (not a failure, never "fine").
     """
     x = renders_[..., :3]
     bad = int((~np.isfinite(x)).sum()), int((x < 0).sum())
     numbers = {"nonfinite_values": bad[0], "negative_values": bad[1]}
     if bad[0] or bad[1]:
         return "non-finite/negative", False, numbers
-    test = tail_aware_test(x, ref_moments)
+    test = replicated_test(x, ref_moments, fresh)
     numbers.update(test)
     med = float(np.median(per_render))
     tail_ratio = float(per_render.max() / med) if med > 0 else 1.0
@@ -71,25 +71,36 @@ def verdict(renders_: np.ndarray, ref_moments, per_render: np.ndarray,
         fireflies > TAIL_FIREFLIES
     if test["passed"]:
         return ("heavy-tailed" if heavy else "fine"), True, numbers
-    if test["passed_where_reliable"]:
+    if test["replicated"] is False:
         return "K too small to tell", True, numbers
     return "biased", False, numbers
 
 
-def tail_aware_test(x: np.ndarray, ref_moments) -> dict:
-    """The batch-means test of K renders ``x`` against the reference, and
-    whether it passes at the pixels where it is reliable (see tails.py)."""
+def replicated_test(x: np.ndarray, ref_moments, fresh) -> dict:
+    """The batch-means test of K renders ``x`` against the reference; where it
+    rejects, the same test on ``fresh()`` K renders at the rejected pixels
+    (Šidák over them) and on the image mean. ``replicated`` is None when
+    nothing needed replicating, else whether any rejection replicated."""
     cmp_ = statistics.compare(x, ref_moments, ALPHA)
+    out = {"passed": cmp_.passed, "pass_fraction": cmp_.pass_fraction, "min_p": cmp_.min_p,
+           "pooled_p": [float(p) for p in cmp_.pooled_p], "alpha_pixel": cmp_.alpha_pixel,
+           "test": cmp_.summary(), "rejected_pixels": 0, "replicated_pixels": 0,
+           "replicated": None}
+    if cmp_.passed:
+        return out
     rejected = cmp_.pixel_p < cmp_.alpha_pixel
-    shaky = tails.unreliable(x, cmp_.alpha_pixel)
-    pooled_ok = bool(cmp_.pooled_p.min() >= cmp_.alpha_pooled)
-    return {"passed": cmp_.passed, "pass_fraction": cmp_.pass_fraction, "min_p": cmp_.min_p,
-            "pooled_p": [float(p) for p in cmp_.pooled_p], "alpha_pixel": cmp_.alpha_pixel,
-            "rejected_pixels": int(rejected.sum()),
-            "unreliable_pixels": int(shaky.sum()),
-            "rejected_where_reliable": int((rejected & ~shaky).sum()),
-            "passed_where_reliable": pooled_ok and not (rejected & ~shaky).any(),
-            "test": cmp_.summary()}
+    y = fresh()[..., :3]
+    again = statistics.compare(y, ref_moments, ALPHA)
+    pooled_again = bool(again.pooled_p.min() < again.alpha_pooled)
+    pixels_again = np.zeros_like(rejected)
+    if rejected.any():
+        at = statistics.compare(y, ref_moments, ALPHA, mask=rejected)
+        pixels_again = rejected & (at.pixel_p < at.alpha_pixel)
+    pooled_first = bool(cmp_.pooled_p.min() < cmp_.alpha_pooled)
+    out.update(rejected_pixels=int(rejected.sum()), replicated_pixels=int(pixels_again.sum()),
+               replicated=bool(pixels_again.any() or (pooled_first and pooled_again)),
+               replication_test=again.summary())
+    return out
 
 
 #: Largest density a strategy puts on any direction, for the expected number
@@ -118,12 +129,12 @@ def sun_split_verdict(case, defines: dict, failed: list, variant: str, cache_dir
                      {"path": units["path"]}, progress)
     out = {}
     for n in failed:
-        test = tail_aware_test(units[n].images[..., :3], ref.moments())
+        test = replicated_test(units[n].images[..., :3], ref.moments(),
+                               _fresh(scene, integrators_[n], case, FIRST_SEED + 150_000))
         pdf = MAX_DIRECTION_PDF.get(n)
         hits = None if pdf is None else case.seeds * case.spp * facts["solid_angle"] * pdf
-        out[n] = {"sun": facts, "sunless_passed": test["passed_where_reliable"],
+        out[n] = {"sun": facts, "sunless_passed": test["passed"] or not test["replicated"],
                   "sunless_test": test["test"],
-                  "sunless_rejected_where_reliable": test["rejected_where_reliable"],
                   "sunless_reference_mean": float(ref.mean[..., :3].mean()),
                   "expected_sun_hits_per_pixel": hits}
     return out
@@ -160,6 +171,14 @@ def _reference(scene, info, defines, params, variant, cache_dir, profile, units,
     return references.ensure(scene, info.path, defines, params, variant, cache_dir, target,
                              profile.reference_spp_per_pass, profile.reference_max_spp,
                              profile.reference_max_seconds, progress)
+
+
+def _fresh(scene, integrator, case, first_seed: int):
+    """A callable giving ``case.seeds`` new renders (for replication)."""
+    def render():
+        return np.stack([renders.render(scene, integrator, case.spp, first_seed + i).image
+                         for i in range(case.seeds)]).astype(np.float64)
+    return render
 
 
 def _evidence(case_dir: str, name: str, x: np.ndarray, per_render: np.ndarray) -> dict:
@@ -232,7 +251,7 @@ def run_case(case, estimators, out_dir: str, cache_dir: str, variant: str, profi
         per = tails.per_render_relmse(x, r)
         fireflies = tails.firefly_fraction(x, r)
         numbers = {"relmse": tails.percentiles(per), "firefly_fraction": fireflies,
-                   "samples_per_pixel": case.seeds * case.spp,
+                   "samples_per_pixel": case.seeds * case.spp, "seeds": case.seeds,
                    "seconds_median": float(np.median(units[name].seconds)),
                    "image_mean_ratio": float(x.mean() / r.mean()) if r.mean() > 0 else None,
                    "spp_to_match_path": tails.spp_to_match(per, path_rel, case.spp)}
@@ -240,8 +259,10 @@ def run_case(case, estimators, out_dir: str, cache_dir: str, variant: str, profi
             finite = bool(np.isfinite(x).all() and (x >= 0).all())
             v, ok = "biased (opt-in)", finite
             numbers["missing_fraction"] = 1.0 - numbers["image_mean_ratio"]
+            numbers["spp_to_match_path"] = None     # no spp makes a biased image match
         else:
-            v, ok, test = verdict(x, ref.moments(), per, fireflies)
+            v, ok, test = verdict(x, ref.moments(), per, fireflies,
+                                  _fresh(scene, integrators_[name], case, FIRST_SEED + 100_000))
             numbers.update(test)
         row.update(verdict=v, numbers=numbers, images=_evidence(case_dir, name, x, per))
         rows.append(row)
@@ -290,8 +311,9 @@ def _describe(v: str, n: dict) -> str:
                  + (f"{hits:.2g} direct hits per pixel in all {n['samples_per_pixel']} samples"
                     if hits is not None else "to be found only through the BSDF lobe"))
     elif v == "K too small to tell":
-        text += (f"; the per-pixel test rejects {n['rejected_pixels']} px, all where it is "
-                 f"unreliable for K renders (skewed); pooled p = {min(n['pooled_p']):.3g}")
+        text += (f"; the test rejected {n['rejected_pixels']} px (pooled p = "
+                 f"{min(n['pooled_p']):.3g}) and no rejection replicated in "
+                 f"{n['seeds']} fresh renders")
     elif "sunless_test" in n:
         text += f"; {n['test']}; without the sun: {n['sunless_test']}"
     elif "test" in n:

@@ -169,7 +169,7 @@ Tone mapping for every image below: x·2<sup>{ev:+.1f}</sup>, clipped to [0, 1],
 </section>"""
 
 
-def _failures(res: dict, palette: dict) -> str:
+def _failures(res: dict, run_dir: str, palette: dict) -> str:
     failed = [c for c in res["checks"] if not c["passed"]]
     items = "".join(f"<li><code>{html.escape(c['id'])}</code>: {html.escape(c['message'])}</li>"
                     for c in failed) or "<li>No check failed in this run.</li>"
@@ -185,6 +185,7 @@ def _failures(res: dict, palette: dict) -> str:
                              f"relMSE is {per.max() / np.median(per):.0f}× the median "
                              f"(heavy tail)</li>")
     spreads = "".join(charts.error_spread(s, palette) for s in res["scenes"])
+    cases = "".join(_failure_case(c, run_dir, palette) for c in res.get("failures", []))
     return f"""
 <section id="failures">
 <h2>Where methods fail</h2>
@@ -193,7 +194,98 @@ of per-render error over seeds (a long upper tail means rare, large contribution
 fireflies).</p>
 <ul>{items}{''.join(capped)}{''.join(tails)}</ul>
 <div class=row>{spreads}</div>
+{cases}
 </section>"""
+
+
+VERDICT_CLASS = {"fine": "ok", "heavy-tailed": "warn", "K too small to tell": "warn",
+                 "refused": "ok", "biased (opt-in)": "warn", "biased": "bad",
+                 "non-finite/negative": "bad"}
+
+
+def _failure_case(case: dict, run_dir: str, palette: dict) -> str:
+    """One case of the failures group: verdicts, numbers, evidence images."""
+    case_dir = os.path.join(run_dir, "failures", case["id"])
+    ref_file = os.path.join(case_dir, "reference.exr")
+    ref = images.read_exr(ref_file)[0] if os.path.isfile(ref_file) else None
+    ev = exposure_for(ref) if ref is not None else 0.0
+    figs = [] if ref is None else [_figure(_png_uri(_enlarge(images.tonemap(ref, ev), 96)),
+                                           "reference (path)")]
+    rows = []
+    for est in case["estimators"]:
+        for label, f in est.get("images", {}).items():
+            x = images.read_exr(os.path.join(case_dir, f))[0]
+            figs.append(_figure(_png_uri(_enlarge(images.tonemap(x, ev), 96)),
+                                f"{est['name']}<br>{label} seed"))
+        rows.append(_failure_row(case, est, palette))
+    if case.get("sweep"):
+        sw = case["sweep"]
+        head = ("<tr><th>estimator</th>" + "".join(
+            f"<th>relMSE at {sw['param']} = {v}</th>" for v in sw["values"]) +
+            "<th>growth</th><th>verdict</th></tr>")
+        chart = charts.failure_sweep(case, palette)
+        note = (f"<p>Evidence images at {sw['param']} = {sw['values'][-1]} (median- and "
+                "worst-error seeds).</p>")
+    else:
+        head = ("<tr><th>estimator</th><th>verdict</th><th>relMSE median / p90 / p99 / max"
+                "</th><th>fireflies</th><th>spp to match path at "
+                f"{case['spp']} spp [90 % bootstrap]</th><th>evidence</th></tr>")
+        chart, note = "", ""
+    capped = f", capped ({case['reference']['capped']})" if case.get("reference", {}).get(
+        "capped") else ""
+    ref_line = (f" Reference: path, {case['reference']['spp']} spp{capped}."
+                if case.get("reference") else "")
+    defines = ", ".join(f"{k}={v}" for k, v in case.get("defines", {}).items())
+    return f"""
+<h3 id="{html.escape(case['id'])}">{html.escape(case['group'])}: {html.escape(case['label'])}
+<small>{html.escape(case['scene'])}{' (' + html.escape(defines) + ')' if defines else ''},
+{case['res']}², {case['spp']} spp × {case['seeds']} seeds</small></h3>
+<p class=desc>{html.escape(case.get('summary', ''))}{html.escape(ref_line)}</p>
+{chart}{note}
+<table>{head}{''.join(rows)}</table>
+<div class=row>{''.join(figs)}</div>"""
+
+
+def _failure_row(case: dict, est: dict, palette: dict) -> str:
+    name = (f"<td><span class=sw style='background:{palette.get(est['name'], '#777')}'></span>"
+            f"{html.escape(est['name'])}</td>")
+    v = est["verdict"]
+    cls = VERDICT_CLASS.get(v, "")
+    if case.get("sweep"):
+        cells = "".join(f"<td>{_fmt(r)}</td>" for r in est["relmse"])
+        return (f"<tr>{name}{cells}<td>×{_fmt(est['growth'])}</td>"
+                f"<td class={cls}>{html.escape(v)}</td></tr>")
+    n = est.get("numbers", {})
+    if v == "refused" or not n:
+        return (f"<tr>{name}<td class={cls}>{html.escape(v)}</td>"
+                f"<td colspan=4>{html.escape(est.get('message', ''))}</td></tr>")
+    rel = n["relmse"]
+    match = n["spp_to_match_path"]
+    evidence = []
+    if "missing_fraction" in n:
+        evidence.append(f"BIASED by allow_unreachable=true: {100 * n['missing_fraction']:.1f} % "
+                        "of path's image mean missing")
+    if "sun" in n:
+        hits = n.get("expected_sun_hits_per_pixel")
+        evidence.append(
+            f"without the sun ({n['sun']['solid_angle']:.2g} sr, "
+            f"{100 * n['sun_share_of_image']:.0f} % of the image): "
+            + ("passes" if n["sunless_passed"] else "FAILS")
+            + (f"; expected sun hits/pixel {hits:.2g}" if hits is not None else ""))
+    if "rejected_pixels" in n:
+        again = ("" if n["replicated"] is None else
+                 f", {n['replicated_pixels']} replicated in fresh renders"
+                 + (" (with the image mean)" if n["replicated"] and not n["replicated_pixels"]
+                    else ""))
+        evidence.append(f"per-pixel test: {100 * n['pass_fraction']:.1f} % pass, "
+                        f"pooled p {min(n['pooled_p']):.2g}; {n['rejected_pixels']} px "
+                        f"rejected{again}")
+    spp = (f"{_fmt(match['spp'])} [{_fmt(match['low'])}, {_fmt(match['high'])}]"
+           if match else "never (biased)")
+    return (f"<tr>{name}<td class={cls}>{html.escape(v)}</td>"
+            f"<td>{_fmt(rel['median'])} / {_fmt(rel['p90'])} / {_fmt(rel['p99'])} / "
+            f"{_fmt(rel['max'])}</td><td>{100 * n['firefly_fraction']:.3f} %</td>"
+            f"<td>{spp}</td><td>{html.escape('; '.join(evidence))}</td></tr>")
 
 
 CSS = """
@@ -202,7 +294,7 @@ h1{margin-bottom:4px} h2{border-top:2px solid #ddd;padding-top:12px} h2 small{co
 .row{display:flex;flex-wrap:wrap;gap:10px;align-items:flex-start}
 figure{margin:0;text-align:center;font-size:12px} figure img{image-rendering:pixelated;display:block}
 table{border-collapse:collapse;margin:10px 0;font-size:13px} td,th{border:1px solid #ccc;padding:4px 8px}
-.ok{color:#1a7f37} .bad{color:#c62828;font-weight:bold} .sw{display:inline-block;width:10px;height:10px;margin-right:6px}
+.ok{color:#1a7f37} .warn{color:#a15c00} .bad{color:#c62828;font-weight:bold} .sw{display:inline-block;width:10px;height:10px;margin-right:6px}
 .verdict{font-size:18px;padding:8px 12px;display:inline-block;border-radius:4px}
 .pass{background:#e6f4ea} .fail{background:#fdecea} .desc{color:#555} svg{max-width:100%;height:auto}
 .bar svg{width:420px}
@@ -217,7 +309,9 @@ def build(run_dir: str) -> str:
                                 f"{run_dir}` first")
     with open(path, encoding="utf-8") as f:
         res = json.load(f)
-    names = list(dict.fromkeys(e["name"] for s in res["scenes"] for e in s["estimators"]))
+    names = list(dict.fromkeys([e["name"] for s in res["scenes"] for e in s["estimators"]]
+                               + [e["name"] for c in res.get("failures", [])
+                                  for e in c["estimators"]]))
     palette = charts.colours(names)
     checks = res["checks"]
     failed = sum(not c["passed"] for c in checks)
@@ -242,7 +336,7 @@ max_depth is the reference. Unbiasedness: per-pixel Welch tests with each side's
 (Šidák-corrected) and an image-mean test, family-wise α = {res['alpha']}.
 relMSE = mean (x−r)²/(r²+0.01); efficiency = 1/(relMSE·time).</p>
 {body}
-{_failures(res, palette)}
+{_failures(res, run_dir, palette)}
 <section id="summary"><h2>Summary across scenes</h2>{charts.efficiency_summary(res, palette)}</section>
 </body></html>
 """

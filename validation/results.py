@@ -96,6 +96,27 @@ def summary(results: dict) -> str:
                           f"predicted best first: {', '.join(et['predicted_ranking'])}; "
                           f"measured: {measured}."]
         lines.append("")
+    if results.get("failures"):
+        lines += ["## Where methods fail", "",
+                  "| case | estimator | verdict | relMSE median / p99 / max | fireflies "
+                  "| spp to match path |", "|---|---|---|---|---|---|"]
+        for case in results["failures"]:
+            for est in case["estimators"]:
+                n = est.get("numbers") or {}
+                if case.get("sweep"):
+                    cells = (f"relMSE {', '.join(f'{r:.3g}' for r in est['relmse'])} over "
+                             f"{case['sweep']['param']} = "
+                             f"{', '.join(str(v) for v in case['sweep']['values'])} | | ")
+                elif n:
+                    r, m = n["relmse"], n["spp_to_match_path"]
+                    cells = (f"{r['median']:.3g} / {r['p99']:.3g} / {r['max']:.3g} | "
+                             f"{100 * n['firefly_fraction']:.3f} % | "
+                             + (f"{m['spp']:.3g} [{m['low']:.3g}, {m['high']:.3g}]" if m
+                                else "never (biased)"))
+                else:
+                    cells = " | | "
+                lines.append(f"| {case['label']} | {est['name']} | {est['verdict']} | {cells} |")
+        lines.append("")
     if failed:
         lines += ["## Failed checks", ""] + [f"- `{c['id']}`: {c['message']}" for c in failed]
     return "\n".join(lines) + "\n"

@@ -18,19 +18,18 @@ trusts a sample variance that rests on a few of them. Definitions (used by
   ``path`` at the same spp·(ratio), i.e. spp · mean relMSE(estimator) / mean
   relMSE(path) — valid for unbiased estimators, whose relMSE falls as 1/spp —
   with a bootstrap interval over seeds (heavy tails make it wide: say so).
-* reliable t-test: a per-pixel t-test on K renders whose sample skewness is
-  γ has, by the first Edgeworth term, a one-sided tail error of about
-  γ (2z² + 1) φ(z) / (6√K) at the critical value z. Where that exceeds the
-  tail level α_px/2 the test cannot tell a bias from a tail it has not seen
-  (the mean of a right-skewed sample is usually low, and so is its variance
-  estimate): :func:`unreliable` marks those pixels. At Šidák levels
-  (α_px ≈ 3e-5, z ≈ 4.2) and K = 64 this happens from γ ≈ 0.3 on.
+* replication: a per-pixel t-test on K renders of a heavy-tailed estimator
+  rejects more often than its level says (the mean of a right-skewed sample
+  is usually low, and so is its variance estimate). A rejection is therefore
+  only believed if it replicates: K fresh renders, tested at the rejected
+  pixels alone (Šidák over those) and on the image mean, must reject again.
+  An artefact of an unseen tail replicates with probability about α; a bias
+  replicates with the test's power (see validation/failures.py).
 """
 
 from __future__ import annotations
 
 import numpy as np
-from scipy import stats
 
 from . import metrics
 
@@ -67,19 +66,6 @@ def firefly_mask(renders: np.ndarray, reference: np.ndarray) -> np.ndarray:
 
 def firefly_fraction(renders: np.ndarray, reference: np.ndarray) -> float:
     return float(firefly_mask(renders, reference).mean())
-
-
-def unreliable(renders: np.ndarray, alpha_pixel: float) -> np.ndarray:
-    """(H, W) True where the per-pixel t-test at two-sided level
-    ``alpha_pixel`` is unreliable for these K renders (see module doc); the
-    skewness is the largest over the colour channels."""
-    x = np.asarray(renders, np.float64)[..., :3]
-    k = x.shape[0]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        gamma = np.nan_to_num(np.abs(stats.skew(x, axis=0, bias=False))).max(axis=-1)
-    z = stats.norm.isf(alpha_pixel / 2)
-    error = gamma * (2 * z * z + 1) * stats.norm.pdf(z) / (6 * np.sqrt(k))
-    return error > alpha_pixel / 2
 
 
 def spp_to_match(relmse_est: np.ndarray, relmse_ref: np.ndarray, spp: int,
