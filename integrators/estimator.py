@@ -155,7 +155,8 @@ class IlluminationEstimator(mi.SamplingIntegrator):
         pdf = self.pdf_local(w_up)
         wo = mi.Vector3f(w_up.x, w_up.y, dr.mulsign(w_up.z, si.wi.z))
         f_cos = bsdf.eval(ctx, si, wo)                  # bsdf.eval includes cos θ
-        weight = dr.select(pdf > 0, f_cos / pdf, 0)
+        # (select the divisor too: scalar variants divide Python floats, which raise)
+        weight = dr.select(pdf > 0, f_cos / dr.select(pdf > 0, pdf, 1.0), 0)
         return wo, weight, pdf, mi.Bool(False), mi.Float(1)
 
     # ----------------- Scene validation and pass splitting ----------------

@@ -267,3 +267,14 @@ def test_allow_unreachable_renders_the_biased_image_and_says_what_it_lacks(llvm,
 def test_allow_unreachable_must_be_a_boolean(llvm):
     with pytest.raises(Exception, match="allow_unreachable must be a boolean"):
         renders.make_integrator("cosine_hemisphere", {"allow_unreachable": "yes"})
+
+
+@pytest.mark.slow
+def test_scalar_variant_survives_a_zero_pdf_direction():
+    """A sampled direction exactly on the horizon has pdf 0; scalar variants
+    divide Python floats, which raised ZeroDivisionError (cornell_box, 128²,
+    64 spp, seed 0 hit one)."""
+    renders.set_variant("scalar_rgb")
+    scene = renders.load_scene(SCENES / "cornell_box.xml", res=128)
+    image = renders.render(scene, renders.make_integrator("cosine_hemisphere"), 64, 0).image
+    assert np.isfinite(image).all()
