@@ -534,7 +534,8 @@ def _make_integrator(renders, name: str, params: dict):
             raise _Failed(
                 f"integrator '{name}' has no parameter {', '.join(unknown)}: mcillum's "
                 "integrators take max_depth, rr_depth, hide_emitters and "
-                "allow_unreachable; Mitsuba's own are listed in its documentation (Plugin reference > Integrators)") from None
+                "allow_unreachable; Mitsuba's own are listed in its documentation "
+                "(Plugin reference > Integrators)") from None
         raise _Failed(f"integrator '{name}' rejected {shown or 'its defaults'}: "
                       f"{text}") from None
     if not isinstance(integrator, mi.Integrator):

@@ -16,8 +16,9 @@ Groups:
 * ``unreachable`` — delta lights and lobes: refusing estimators must refuse;
   with ``allow_unreachable=true`` they render an image whose missing share is
   measured against path ("biased by opt-in").
-* ``geometry`` — grazing views, back faces, shading normals, thin objects:
-  no NaN/Inf/negative radiance and agreement with path.
+* ``geometry`` — grazing views, back faces, shading normals, thin objects —
+  and ``numerical`` (zero-area emitters): no NaN/Inf/negative radiance and
+  agreement with path.
 * ``glossy`` — one parameter swept (roughness α, Phong exponent): relMSE at a
   fixed spp, and relMSE × seconds, against the parameter.
 

@@ -26,7 +26,7 @@ class SceneRun:
 class FailureCase:
     """One case of the ``failures`` group (see validation/failures.py)."""
 
-    group: str                     # heavy_tail | unreachable | geometry | glossy
+    group: str          # heavy_tail | unreachable | geometry | numerical | glossy
     scene: str
     res: int
     spp: int
@@ -54,6 +54,9 @@ class Profile:
     failures: tuple[FailureCase, ...] = ()
 
 
+#: Geometry edge cases (grazing views, back faces, shading normals, thin plates).
+GEOMETRY = ("edge_grazing", "edge_backface", "edge_shading_normals", "edge_thin")
+
 QUICK = Profile("quick", (
     # silhouette pixels hinge on rare sub-pixel hits: with 680 samples per
     # pixel (16², 1–64 spp × 8) emitter_sampling failed one at p = 2e-8 while
@@ -72,6 +75,9 @@ QUICK = Profile("quick", (
     FailureCase("unreachable", "smooth_glass", 8, 16, 16),
     FailureCase("glossy", "glossy_sphere", 8, 16, 16, label="roughness",
                 sweep=("alpha", (0.5, 0.1, 0.02))),
+    *(FailureCase("geometry", scene, 8, 16, 64) for scene in GEOMETRY),
+    FailureCase("numerical", "edge_light_size", 8, 16, 64, {"radius": 0, "size": 0},
+                label="zero_area_emitters"),
 ))
 
 FULL = Profile("full", (
@@ -94,6 +100,9 @@ FULL = Profile("full", (
                 sweep=("alpha", (0.5, 0.3, 0.2, 0.1, 0.05, 0.02, 0.01))),
     FailureCase("glossy", "glossy_phong", 24, 64, 16, label="phong_exponent",
                 sweep=("exponent", (10, 30, 100, 300, 1000, 3000))),
+    *(FailureCase("geometry", scene, 16, 64, 64) for scene in GEOMETRY),
+    FailureCase("numerical", "edge_light_size", 16, 64, 64, {"radius": 0, "size": 0},
+                label="zero_area_emitters"),
 ))
 
 PROFILES = {p.name: p for p in (QUICK, FULL)}
