@@ -59,6 +59,16 @@ def test_refused_scene_exits_1_naming_the_light(llvm, tmp_path, capsys):
     assert not out.exists() and not list(tmp_path.iterdir())
 
 
+def test_opt_in_render_is_written_and_marked_biased(llvm, tmp_path, capsys):
+    out = tmp_path / "x.exr"
+    code = cli.main(["render", str(SCENES / "point_light.xml"), "-i", "cosine_hemisphere",
+                     "-p", "allow_unreachable=true", "-D", "res=4", "-o", str(out)])
+    err = capsys.readouterr().err
+    assert code == 0 and "BIASED" in err and "'key_light'" in err
+    _, meta = images.read_exr(out)
+    assert "'key_light'" in meta["biased"]
+
+
 @pytest.mark.parametrize("args", [
     ["render", CORNELL, "-i", "cosine_hemisphere", "-o", "x.png"],
     ["render", CORNELL, "-i", "cosine_hemisphere", "--spp", "0", "-o", "x.exr"],

@@ -388,6 +388,9 @@ def _render(args) -> int:
         "drjit_version": dr.__version__,
         "render_seconds": result.seconds,
     }
+    missing = getattr(integrator, "unreachable", [])
+    if missing:   # allow_unreachable=true: the file must say it is biased
+        meta["biased"] = "; ".join(p.what for p in missing)
     for path, write in ((args.output, lambda p: images.write_exr(p, result.image, meta)),
                         (png, lambda p: images.write_png(p, result.image, args.exposure))):
         try:
@@ -397,6 +400,9 @@ def _render(args) -> int:
     h, w = result.image.shape[:2]
     print(f"{args.output}: {w}x{h}, {args.spp} spp, {args.integrator}, "
           f"{result.seconds:.3f} s ({variant}); preview {png}")
+    if missing:
+        print(f"warning: BIASED image (allow_unreachable=true): it lacks {meta['biased']}; "
+              "the EXR header records this as mcillum.biased", file=sys.stderr)
     return EXIT_OK
 
 
