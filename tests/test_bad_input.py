@@ -75,7 +75,7 @@ RENDER = [
      f"'phong' is a BSDF plugin, not an integrator: {MCILLUM_INTEGRATORS}"),
     ("unknown-param", [CORNELL, "-i", "cosine_hemisphere", "-p", "foo=1"], 1,
      "integrator 'cosine_hemisphere' has no parameter foo: mcillum's integrators take "
-     "max_depth, rr_depth and hide_emitters"),
+     "max_depth, rr_depth, hide_emitters and allow_unreachable"),
     ("unknown-param-path", [CORNELL, "-i", "path", "-p", "foo=1"], 1,
      "integrator 'path' has no parameter foo"),
     ("unknown-define", [CORNELL, "-i", "path", "-D", "foo=1"], 1,
