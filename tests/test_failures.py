@@ -148,7 +148,8 @@ FAILURE_SCENES = [
 def test_no_estimator_emits_nan_inf_or_negative_over_64_seeds(llvm, scene, defines):
     from conftest import SCENES
 
-    loaded = renders.load_scene(SCENES / f"{scene}.xml", res=4, **defines)
+    # (8² px as tests/test_scenes.py, so the kernels compiled there are reused)
+    loaded = renders.load_scene(SCENES / f"{scene}.xml", res=8, **defines)
     for name in ALL_ESTIMATORS + ["path"]:
         integrator = renders.make_integrator(name, {"allow_unreachable": True}
                                              if name != "path" else {})
