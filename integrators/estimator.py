@@ -194,14 +194,9 @@ class IlluminationEstimator(mi.SamplingIntegrator):
                 f"{self.plugin_name}: {spp} spp need {len(plan)} passes (over 2^32 "
                 "samples), which cannot accumulate into an undeveloped film; "
                 "render with develop=True or fewer spp per call")
-        image = None
-        for i, n in enumerate(plan):
-            # Σ_i (spp_i / spp) · image_i: the passes' weighted mean
-            part = super().render(scene, sensor, passes.pass_seed(seed, i), n, True, True)
-            part = part * (n / spp)
-            image = part if image is None else image + part
-            dr.eval(image)
-        return image
+        base = super().render
+        return passes.render_in_passes(
+            plan, seed, lambda s, n: base(scene, sensor, s, n, True, True))
 
     # --------------------------- Estimator ------------------------------
 

@@ -44,6 +44,22 @@ def film_lanes(film) -> int:
     return (int(size[0]) + 2 * border) * (int(size[1]) + 2 * border)
 
 
+def render_in_passes(plan: list[int], seed: int, render_pass):
+    """Σ_i (spp_i / spp) · ``render_pass(seed_i, spp_i)`` over the passes of
+    ``plan``, evaluated after each pass (seed_i from :func:`pass_seed`); one
+    pass is returned as rendered."""
+    import drjit as dr
+
+    if len(plan) == 1:
+        return render_pass(seed, plan[0])
+    spp, image = sum(plan), None
+    for i, n in enumerate(plan):
+        part = render_pass(pass_seed(seed, i), n) * (n / spp)
+        image = part if image is None else image + part
+        dr.eval(image)
+    return image
+
+
 def pass_seed(seed: int, index: int) -> int:
     """Seed of pass ``index`` of a render with ``seed`` (pass 0 keeps ``seed``,
     so an unsplit render is unchanged). Later passes get a 32-bit mix of both,

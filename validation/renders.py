@@ -122,11 +122,8 @@ def render(scene: mi.Scene, integrator: mi.Integrator, spp: int, seed: int = 0) 
     plan = [spp] if hasattr(integrator, "unreachable") else passes.plan_passes(
         passes.film_lanes(scene.sensors()[0].film()), spp)
     start = time.perf_counter()
-    image = None
-    for i, n in enumerate(plan):
-        part = mi.render(scene, integrator=integrator, spp=n, seed=passes.pass_seed(seed, i))
-        image = part if image is None else image + (part - image) * (n / sum(plan[:i + 1]))
-        dr.eval(image)
+    image = passes.render_in_passes(
+        plan, seed, lambda s, n: mi.render(scene, integrator=integrator, spp=n, seed=s))
     dr.sync_thread()
     seconds = time.perf_counter() - start
     return Render(np.array(image, dtype=np.float32), seconds, spp, seed,
