@@ -24,23 +24,33 @@ import numpy as np
 from . import catalog, procedural, safety
 
 SUN_FACTOR = 100.0
-_LUMA = np.array([0.2126, 0.7152, 0.0722])
+#: Rec. 709 luminance weights.
+LUMA = np.array([0.2126, 0.7152, 0.0722])
+
+
+def luminance(rgb: np.ndarray) -> np.ndarray:
+    """(…, C≥3) linear RGB → (…) luminance."""
+    return np.asarray(rgb, np.float64)[..., :3] @ LUMA
+
+
+def _texels(rgb: np.ndarray):
+    """(luminance, cell solid angles, solid-angle-weighted mean luminance) of a map."""
+    lum = luminance(rgb)
+    solid = procedural.cell_solid_angles(*lum.shape)
+    return lum, solid, float((lum * solid).sum() / solid.sum())
 
 
 def sun_mask(rgb: np.ndarray, factor: float = SUN_FACTOR) -> np.ndarray:
     """(H, W) True at texels brighter than ``factor`` × the mean luminance."""
-    lum = rgb[..., :3].astype(np.float64) @ _LUMA
-    solid = procedural.cell_solid_angles(*lum.shape)
-    mean = float((lum * solid).sum() / solid.sum())
+    lum, _, mean = _texels(rgb)
     return lum > factor * mean
 
 
 def split(rgb: np.ndarray, factor: float = SUN_FACTOR) -> tuple[np.ndarray, dict]:
     """(map without its sun, facts): the sun's solid angle (sr), its share of
     the map's power (∫L dω, luminance) and texel count."""
-    mask = sun_mask(rgb, factor)
-    lum = rgb[..., :3].astype(np.float64) @ _LUMA
-    solid = procedural.cell_solid_angles(*lum.shape)
+    lum, solid, mean = _texels(rgb)
+    mask = lum > factor * mean
     power = float((lum * solid).sum())
     sunless = np.where(mask[..., None], 0.0, rgb).astype(np.float32)
     return sunless, {"solid_angle": float(solid[mask].sum()), "texels": int(mask.sum()),

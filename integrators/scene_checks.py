@@ -13,7 +13,7 @@ and an image rendered anyway would be silently wrong (biased dark):
 
 Participating media are refused as well: these integrators do not trace them.
 
-:func:`unreachable` lists the problems; :func:`require_reachable` raises
+:func:`unreachable` lists the problems; :func:`check_reachable` raises
 :class:`UnreachableContentError` naming the first few with a remedy. Nothing
 here depends on the variant beyond reading flags.
 """
@@ -162,11 +162,6 @@ def unreachable(scene) -> list[Problem]:
                 "medium", f"shape {_name(obj)} bounds a participating medium",
                 "media are not traced; render it with Mitsuba's 'volpath'"))
     return problems
-
-
-def require_reachable(scene, integrator: str, allowed: frozenset[str] = frozenset()) -> None:
-    """Raise :class:`UnreachableContentError` unless every problem kind is allowed."""
-    check_reachable(scene, integrator, allowed, accept=False)
 
 
 def check_reachable(scene, integrator: str, allowed: frozenset[str] = frozenset(),

@@ -47,6 +47,11 @@ FIRST_SEED = 700_000
 
 # ------------------------------- Verdicts ------------------------------------
 
+def bad_values(x: np.ndarray) -> tuple[int, int]:
+    """(NaN/Inf values, negative values) in renders ``x``."""
+    return int((~np.isfinite(x)).sum()), int((x < 0).sum())
+
+
 def verdict(renders_: np.ndarray, ref_moments, per_render: np.ndarray, fireflies: float,
             fresh) -> tuple[str, bool, dict]:
     """(verdict, passed, numbers) of K renders of an estimator that rendered.
@@ -58,7 +63,7 @@ def verdict(renders_: np.ndarray, ref_moments, per_render: np.ndarray, fireflies
     tell" (not a failure, never "fine").
     """
     x = renders_[..., :3]
-    bad = int((~np.isfinite(x)).sum()), int((x < 0).sum())
+    bad = bad_values(x)
     numbers = {"nonfinite_values": bad[0], "negative_values": bad[1]}
     if bad[0] or bad[1]:
         return "non-finite/negative", False, numbers
@@ -165,10 +170,8 @@ def _refusal(scene, name: str, params: dict) -> str | None:
 
 
 def _reference(scene, info, defines, params, variant, cache_dir, profile, units, progress):
-    noise = [float(np.var(u.images[..., :3], axis=0, ddof=1).mean()) for u in units.values()]
-    noise = [v for v in noise if v > 0]
-    target = references.target_variance(np.sqrt(min(noise)) if noise else 0.0,
-                                        profile.reference_fraction)
+    target = references.target_for([u.images for u in units.values()],
+                                    profile.reference_fraction)
     return references.ensure(scene, info.path, defines, params, variant, cache_dir, target,
                              profile.reference_spp_per_pass, profile.reference_max_spp,
                              profile.reference_max_seconds, progress)
@@ -176,10 +179,8 @@ def _reference(scene, info, defines, params, variant, cache_dir, profile, units,
 
 def _fresh(scene, integrator, case, first_seed: int):
     """A callable giving ``case.seeds`` new renders (for replication)."""
-    def render():
-        return np.stack([renders.render(scene, integrator, case.spp, first_seed + i).image
-                         for i in range(case.seeds)]).astype(np.float64)
-    return render
+    return lambda: sweeps.interleaved(scene, {"x": integrator}, {"x": case.spp}, case.seeds,
+                                      first_seed)["x"].images
 
 
 def _evidence(case_dir: str, name: str, x: np.ndarray, per_render: np.ndarray) -> dict:
@@ -257,8 +258,7 @@ def run_case(case, estimators, out_dir: str, cache_dir: str, variant: str, profi
                    "image_mean_ratio": float(x.mean() / r.mean()) if r.mean() > 0 else None,
                    "spp_to_match_path": tails.spp_to_match(per, path_rel, case.spp)}
         if name in refused:   # biased by the user's choice: measure what is missing
-            finite = bool(np.isfinite(x).all() and (x >= 0).all())
-            v, ok = "biased (opt-in)", finite
+            v, ok = "biased (opt-in)", bad_values(x) == (0, 0)
             numbers["missing_fraction"] = 1.0 - numbers["image_mean_ratio"]
             numbers["spp_to_match_path"] = None     # no spp makes a biased image match
         else:
@@ -349,11 +349,12 @@ def run_sweep(case, estimators, out_dir: str, cache_dir: str, variant: str, prof
         r = ref.mean[..., :3]
         for n, u in units.items():
             x = u.images[..., :3].astype(np.float64)
-            table[n]["relmse"].append(float(np.mean(tails.per_render_relmse(x, r))))
+            per = tails.per_render_relmse(x, r)
+            table[n]["relmse"].append(float(np.mean(per)))
             table[n]["seconds"].append(float(np.median(u.seconds)))
-            table[n]["nonfinite"] += int((~np.isfinite(x)).sum() + (x < 0).sum())
+            table[n]["nonfinite"] += sum(bad_values(x))
             if i == len(values) - 1:    # evidence at the narrowest lobe
-                evidence[n] = _evidence(case_dir, n, x, tails.per_render_relmse(x, r))
+                evidence[n] = _evidence(case_dir, n, x, per)
         if i == len(values) - 1:
             images.write_exr(os.path.join(case_dir, "reference.exr"), r.astype(np.float32),
                              {"spp": ref.spp, param: value})

@@ -183,6 +183,16 @@ def target_variance(min_error: float, fraction: float = 0.1) -> float:
     return (fraction * min_error) ** 2
 
 
+def target_for(stacks, fraction: float = 0.1) -> float:
+    """:func:`target_variance` for the smallest error a reference is compared
+    against: the RMSE of one render of the least noisy of ``stacks`` (each K
+    independent renders, (K, H, W, C)), from its own spread. Zero-variance
+    stacks (e.g. the cosine estimator in a furnace) have no error to resolve."""
+    noise = [float(np.var(x[..., :3], axis=0, ddof=1).mean()) for x in stacks]
+    noise = [v for v in noise if v > 0]
+    return target_variance(np.sqrt(min(noise)) if noise else 0.0, fraction)
+
+
 def ensure(scene, scene_path: str, defines: dict, params: dict, variant: str,
            cache_dir: str, target: float, spp_per_pass: int = 64,
            max_spp: int = 1 << 16, max_seconds: float = 60.0,

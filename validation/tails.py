@@ -31,19 +31,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from envmaps.sun import luminance
+
 from . import metrics
 
 FIREFLY_FACTOR = 10.0
 FIREFLY_FLOOR = 0.01
-
-#: Rec. 709 luminance weights.
-_LUMA = np.array([0.2126, 0.7152, 0.0722])
-
-
-def luminance(image: np.ndarray) -> np.ndarray:
-    """(…, C≥3) linear RGB → (…) luminance."""
-    return np.asarray(image, np.float64)[..., :3] @ _LUMA
-
 
 def per_render_relmse(renders: np.ndarray, reference: np.ndarray) -> np.ndarray:
     """relMSE of each render of a (K, H, W, C) stack against (H, W, C)."""

@@ -68,14 +68,11 @@ def validate_scene(run: profiles.SceneRun, profile: profiles.Profile, estimators
                        run.scene, progress)
 
     # ------------------------------ Reference -------------------------------
-    # Smallest error compared against: the RMSE of one render of the least
-    # noisy (estimator, spp) unit, from its own spread (zero-variance units,
-    # e.g. the cosine estimator in a furnace, have no error to resolve).
-    noise = [float(np.var(u.images[..., :3], axis=0, ddof=1).mean())
-             for spp in run.ladder for u in units[spp].values()]
-    noise = [v for v in noise if v > 0]
-    target = references.target_variance(np.sqrt(min(noise)) if noise else 0.0,
-                                        profile.reference_fraction)
+    # Smallest error compared against: one render of the least noisy
+    # (estimator, spp) unit.
+    target = references.target_for([u.images for spp in run.ladder
+                                    for u in units[spp].values()],
+                                   profile.reference_fraction)
     ref = references.ensure(scene, info.path, defines, params, variant, cache_dir, target,
                             profile.reference_spp_per_pass, profile.reference_max_spp,
                             profile.reference_max_seconds, progress)
