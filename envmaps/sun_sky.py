@@ -27,7 +27,6 @@ from contextlib import contextmanager
 def _variant(variant: str):
     """Run in ``variant`` (a vectorized one: millions of directions), then
     restore the caller's variant."""
-    import integrators  # noqa: F401  (LLVM set-up before drjit)
     import mitsuba as mi
 
     before = mi.variant()

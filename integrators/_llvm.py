@@ -95,6 +95,6 @@ def check(variant: str | None) -> None:
         )
     raise LLVMUnusableError(
         f"{what}, so variant '{variant}' cannot render. This happens when drjit "
-        f"or mitsuba is imported before `import integrators`. Fix: import "
-        f"integrators first, or {how}; or use variant 'scalar_rgb'."
+        f"or mitsuba is imported before `import mcillum`. Fix: import "
+        f"mcillum first, or {how}; or use variant 'scalar_rgb'."
     )

@@ -31,6 +31,9 @@ takes care of it.
 
 from __future__ import annotations
 
+import signal
+import threading
+
 import drjit as dr
 import mitsuba as mi
 
@@ -165,7 +168,7 @@ class IlluminationEstimator(mi.SamplingIntegrator):
         if getattr(self, "_in_pass", False):
             # (Mitsuba's render calls back into this override: the outer call
             # has checked the scene and planned the passes already.)
-            return super().render(scene, sensor, seed, spp, develop, evaluate)
+            return self._mitsuba_render(scene, sensor, seed, spp, develop, evaluate)
 
         # Refuse scenes this strategy would render wrong, before any work,
         # unless the user opted into the biased image.
@@ -188,15 +191,31 @@ class IlluminationEstimator(mi.SamplingIntegrator):
 
     def _render_passes(self, scene, sensor, seed, spp, plan, develop, evaluate):
         if len(plan) == 1:
-            return super().render(scene, sensor, seed, spp, develop, evaluate)
+            return self._mitsuba_render(scene, sensor, seed, spp, develop, evaluate)
         if not develop:
             raise ValueError(
                 f"{self.plugin_name}: {spp} spp need {len(plan)} passes (over 2^32 "
                 "samples), which cannot accumulate into an undeveloped film; "
                 "render with develop=True or fewer spp per call")
-        base = super().render
         return passes.render_in_passes(
-            plan, seed, lambda s, n: base(scene, sensor, s, n, True, True))
+            plan, seed, lambda s, n: self._mitsuba_render(scene, sensor, s, n, True, True))
+
+    def _mitsuba_render(self, scene, sensor, seed, spp, develop, evaluate):
+        """Mitsuba's own render, nested inside the caller's ``mi.render``.
+
+        Mitsuba's render binding installs a SIGINT handler for its duration and
+        keeps the one it replaced in a single static variable. A nested render
+        would save the *outer* render's handler there and leave it installed
+        for good: every later Ctrl-C in the process would only log "Received
+        interrupt signal". Re-installing Python's own handler first makes the
+        nested render save and restore Python's, so Ctrl-C stays a
+        KeyboardInterrupt (tests/test_plugins.py).
+        """
+        if threading.current_thread() is threading.main_thread():
+            handler = signal.getsignal(signal.SIGINT)
+            if handler is not None:        # None: not installed from Python
+                signal.signal(signal.SIGINT, handler)
+        return super().render(scene, sensor, seed, spp, develop, evaluate)
 
     # --------------------------- Estimator ------------------------------
 

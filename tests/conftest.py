@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import integrators  # noqa: F401  (LLVM set-up before drjit; registers plugins)
+import mcillum  # noqa: F401  (LLVM set-up before drjit; registers the plugins)
 import mitsuba as mi
 
-from validation import renders
+from mcillum.validation import renders
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENES = ROOT / "scenes"
@@ -60,7 +60,7 @@ def wrong_pdf_class(base: str = "cosine_hemisphere", factor: float = 1.05):
     """The class of :func:`wrong_pdf_integrator` (for mi.register_integrator)."""
     import importlib
 
-    module = importlib.import_module(f"integrators.{base}")
+    module = importlib.import_module(f"mcillum.integrators.{base}")
     cls = next(c for c in vars(module).values()
                if isinstance(c, type) and getattr(c, "plugin_name", None) == base)
     pdf = cls.pdf_local

@@ -21,7 +21,7 @@ far less.
 import numpy as np
 import pytest
 
-from validation import renders, statistics
+from mcillum.validation import renders, statistics
 
 from conftest import ESTIMATORS, SCENES, batch, small, wrong_pdf_integrator
 

@@ -11,7 +11,7 @@ twin: the same check on an estimator whose pdf is 5% off must fail.
 import numpy as np
 import pytest
 
-from validation import renders, statistics
+from mcillum.validation import renders, statistics
 
 from conftest import ALL_ESTIMATORS, ESTIMATORS, SCENES, batch, small, wrong_pdf_integrator
 

@@ -14,8 +14,8 @@ import time
 import numpy as np
 import pytest
 
-from envmaps import procedural
-from validation import cli, images
+from mcillum.envmaps import procedural
+from mcillum.validation import cli, images
 
 from conftest import ROOT, SCENES
 
@@ -221,30 +221,23 @@ def test_report(tmp, capsys, text, code, phrase):
 #: MARKER is created, and the process sleeps until a signal arrives.
 STALLED_WRITE = """
 import contextlib, os, sys, time
-from validation import cli              # light: nothing starts a thread before main()
+from mcillum.validation import cli, images
 
 suffix, marker = sys.argv[1], sys.argv[2]
-route_sigint = cli._route_sigint
+real = images.atomic_path
 
-def route_then_stall():                 # patch images once main() has set SIGINT up
-    route_sigint()
-    from validation import images
-    real = images.atomic_path
+@contextlib.contextmanager
+def stalled(path):
+    with real(path) as tmp:
+        yield tmp
+        if str(path).endswith(suffix):
+            with open(tmp, "r+b") as f:
+                f.truncate(os.path.getsize(tmp) // 2)
+            open(marker, "w").close()
+            for _ in range(1200):   # busy, as a long write would be
+                time.sleep(0.1)
 
-    @contextlib.contextmanager
-    def stalled(path):
-        with real(path) as tmp:
-            yield tmp
-            if str(path).endswith(suffix):
-                with open(tmp, "r+b") as f:
-                    f.truncate(os.path.getsize(tmp) // 2)
-                open(marker, "w").close()
-                for _ in range(1200):   # busy, as a long write would be
-                    time.sleep(0.1)
-
-    images.atomic_path = stalled
-
-cli._route_sigint = route_then_stall
+images.atomic_path = stalled
 sys.argv = ["mcillum", *sys.argv[3:]]
 sys.exit(cli.main())                    # as the console script calls it
 """

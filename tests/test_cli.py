@@ -6,7 +6,7 @@ import sys
 import numpy as np
 import pytest
 
-from validation import cli, images
+from mcillum.validation import cli, images
 
 from conftest import SCENES
 
@@ -90,7 +90,7 @@ def test_missing_scene_exits_1(tmp_path, capsys):
 
 
 def test_console_script_is_installed():
-    result = subprocess.run([sys.executable, "-m", "validation.cli", "--help"],
+    result = subprocess.run([sys.executable, "-m", "mcillum.validation.cli", "--help"],
                             capture_output=True, text=True, timeout=60)
     assert result.returncode == 0 and "render" in result.stdout
 
@@ -98,7 +98,7 @@ def test_console_script_is_installed():
 def test_committed_sky_matches_its_generator():
     import os
 
-    from envmaps import __main__ as generated
+    from mcillum.envmaps import __main__ as generated
 
     here = os.path.dirname(generated.__file__)
     for name, make in generated.COMMITTED.items():

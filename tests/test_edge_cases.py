@@ -57,7 +57,7 @@ import pytest
 
 import mitsuba as mi
 
-from validation import renders, scenes, statistics
+from mcillum.validation import renders, scenes, statistics
 
 from conftest import ALL_ESTIMATORS, batch, wrong_pdf_integrator
 

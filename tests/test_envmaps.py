@@ -6,9 +6,9 @@ import json
 import numpy as np
 import pytest
 
-import envmaps
-from envmaps import catalog, probes, procedural, safety
-from validation import cli, renders, scenes, statistics
+from mcillum import envmaps
+from mcillum.envmaps import catalog, probes, procedural, safety
+from mcillum.validation import cli, renders, scenes, statistics
 
 from conftest import ESTIMATORS, batch, wrong_pdf_integrator
 
@@ -188,7 +188,7 @@ def test_sun_sky_bake_keeps_the_suns_energy(llvm):
     emitter (measured +0.20/+0.20/+0.21% at 1024x512, +0.9% at 256x128);
     point sampling the nodes misses or double-counts the disk (+36/+31/+22% at
     1024x512, −83% at 256x128)."""
-    from envmaps import sun_sky
+    from mcillum.envmaps import sun_sky
 
     kw = {"width": 256, "height": 128}
     good, stderr = sun_sky.energy_error(sun_sky.bake(**kw))

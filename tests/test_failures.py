@@ -13,8 +13,8 @@ import pytest
 
 import mitsuba as mi
 
-from envmaps import procedural, sun
-from validation import failures, profiles, renders, statistics, tails
+from mcillum.envmaps import procedural, sun
+from mcillum.validation import failures, profiles, renders, statistics, tails
 
 from conftest import ALL_ESTIMATORS, wrong_pdf_class
 

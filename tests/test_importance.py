@@ -5,7 +5,7 @@ what each reaches or refuses."""
 import numpy as np
 import pytest
 
-from validation import renders, scenes, statistics
+from mcillum.validation import renders, scenes, statistics
 
 from conftest import batch, wrong_pdf_integrator
 
@@ -58,7 +58,7 @@ def test_wrong_pdf_is_rejected_in_the_new_loop(llvm):
     ("point_light", "bsdf_sampling"), ("smooth_glass", "emitter_sampling"),
 ])
 def test_unreachable_content_is_refused(llvm, scene, name):
-    from integrators import UnreachableContentError
+    from mcillum.integrators import UnreachableContentError
 
     loaded = renders.load_scene(scenes.path(scene), res=2)
     with pytest.raises(Exception) as info:
@@ -72,8 +72,8 @@ def test_strategy_pdfs_match_their_samplers(llvm):
     import drjit as dr
     import mitsuba as mi
 
-    from integrators.bsdf_sampling import bsdf_direction_pdf, sample_bsdf_direction
-    from integrators.emitter_sampling import emitter_direction_pdf, sample_emitter_direction
+    from mcillum.integrators.bsdf_sampling import bsdf_direction_pdf, sample_bsdf_direction
+    from mcillum.integrators.emitter_sampling import emitter_direction_pdf, sample_emitter_direction
 
     rng = np.random.default_rng(11)
     n = 4096

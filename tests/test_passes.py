@@ -12,8 +12,8 @@ import pytest
 
 import mitsuba as mi
 
-from integrators import passes
-from validation import renders, statistics
+from mcillum.integrators import passes
+from mcillum.validation import renders, statistics
 
 from conftest import SCENES
 

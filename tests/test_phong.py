@@ -13,7 +13,7 @@ import pytest
 import drjit as dr
 import mitsuba as mi
 
-from validation import renders, statistics
+from mcillum.validation import renders, statistics
 
 from conftest import ESTIMATORS, ROOT, batch
 
@@ -43,7 +43,7 @@ def test_chi2_sampling_matches_pdf(llvm, n, theta, tmp_path, monkeypatch):
 
 def test_chi2_rejects_a_wrong_pdf(llvm, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    from integrators.phong import PhongBSDF
+    from mcillum.integrators.phong import PhongBSDF
 
     class WrongPdf(PhongBSDF):
         def pdf(self, ctx, si, wo, active=True):

@@ -5,9 +5,9 @@ import pytest
 
 import mitsuba as mi
 
-import integrators
-from integrators.scene_checks import UnreachableContentError
-from validation import renders, statistics
+from mcillum import integrators
+from mcillum.integrators.scene_checks import UnreachableContentError
+from mcillum.validation import renders, statistics
 
 from conftest import ESTIMATORS, SCENES
 

@@ -11,7 +11,7 @@ import shutil
 import numpy as np
 import pytest
 
-from validation import charts, images, report
+from mcillum.validation import charts, images, report
 
 ESTIMATORS = ["uniform_hemisphere", "cosine_hemisphere", "path"]
 

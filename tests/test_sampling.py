@@ -16,7 +16,7 @@ ALPHA = 0.01
 
 
 def strategies():
-    from integrators import cosine_hemisphere as c, uniform_hemisphere as u
+    from mcillum.integrators import cosine_hemisphere as c, uniform_hemisphere as u
 
     return {
         "uniform": (u.sample_uniform_hemisphere, u.uniform_hemisphere_pdf,

@@ -4,8 +4,8 @@
 import numpy as np
 import pytest
 
-from integrators import UnreachableContentError
-from validation import renders, scenes
+from mcillum.integrators import UnreachableContentError
+from mcillum.validation import renders, scenes
 
 SCENES = scenes.index()
 

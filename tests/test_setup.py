@@ -11,7 +11,7 @@ import textwrap
 
 import pytest
 
-from integrators import _llvm
+from mcillum.integrators import _llvm
 
 
 def run_python(code: str, **env_overrides) -> subprocess.CompletedProcess:
@@ -26,11 +26,11 @@ needs_bundled = pytest.mark.skipif(_llvm.bundled_libllvm() is None,
 
 
 @needs_bundled
-def test_import_integrators_gives_working_llvm():
+def test_import_mcillum_gives_working_llvm():
     result = run_python("""
-        import os, integrators
+        import os, mcillum
         import drjit as dr, mitsuba as mi
-        from integrators import _llvm
+        from mcillum.integrators import _llvm
         assert os.environ["DRJIT_LIBLLVM_PATH"] == _llvm.bundled_libllvm()
         assert dr.detail.llvm_version()[0] >= 17, dr.detail.llvm_version()
         mi.set_variant("llvm_ad_rgb")
@@ -45,7 +45,7 @@ def test_import_integrators_gives_working_llvm():
 def test_user_setting_is_respected():
     path = _llvm.bundled_libllvm()
     result = run_python("""
-        import os, integrators
+        import os, mcillum
         print(os.environ["DRJIT_LIBLLVM_PATH"])
         """, DRJIT_LIBLLVM_PATH=path + "")
     assert result.returncode == 0 and result.stdout.strip() == path
@@ -53,7 +53,7 @@ def test_user_setting_is_respected():
 
 IMPORT_DRJIT_FIRST = """
     import drjit                      # picks its LLVM before we can help
-    import integrators, mitsuba as mi
+    import mcillum, mitsuba as mi
     try:
         mi.set_variant("llvm_ad_rgb")
         x = mi.Float([1.0, 3.0])
@@ -74,7 +74,7 @@ def test_drjit_imported_first_with_crashing_llvm_fails_clearly():
     assert "ERROR:" in result.stdout, result.stdout + result.stderr
     message = result.stdout
     assert "Dr.Jit loaded LLVM 1" in message and "crashes" in message
-    assert "import integrators first" in message
+    assert "import mcillum first" in message
     assert f"DRJIT_LIBLLVM_PATH={_llvm.bundled_libllvm()}" in message
 
 
@@ -88,7 +88,7 @@ def test_drjit_imported_first_without_llvm_fails_clearly():
 def test_scalar_needs_no_llvm():
     result = run_python("""
         import drjit
-        import integrators, mitsuba as mi
+        import mcillum, mitsuba as mi
         mi.set_variant("scalar_rgb")
         print(mi.load_dict({"type": "cosine_hemisphere"}).to_string())
         """, DRJIT_LIBLLVM_PATH="/nonexistent/libLLVM.so")

@@ -14,7 +14,7 @@ import pytest
 
 import mitsuba as mi
 
-from validation import cli, profiles, references, renders, results, scenes
+from mcillum.validation import cli, profiles, references, renders, results, scenes
 
 from conftest import wrong_pdf_integrator
 
@@ -143,7 +143,7 @@ def test_reference_key_changes_with_everything_that_changes_the_image(llvm, tmp_
     assert base != references.cache_key(path, defines, {"max_depth": 2}, "scalar_rgb")
     # the bytes of referenced files count: an envmap edited in place changes the key
     env = tmp_path / "env.exr"
-    from envmaps import procedural
+    from mcillum.envmaps import procedural
     procedural.write(env, procedural.constant(1.0))
     sky = scenes.path("sky_sphere")
     k1 = references.cache_key(sky, {"envmap": str(env)}, {}, "llvm_ad_rgb")
@@ -170,7 +170,7 @@ def test_cache_survives_a_killed_run(llvm, tmp_path):
     """Kill `mcillum validate` mid-run: no partial files are left where complete
     ones are expected, and a re-run completes, reusing what was finished."""
     out, cache = tmp_path / "out", tmp_path / "cache"
-    cmd = [sys.executable, "-m", "validation.cli", "validate", "--out", str(out),
+    cmd = [sys.executable, "-m", "mcillum.validation.cli", "validate", "--out", str(out),
            "--cache", str(cache), "--scenes", "cornell_box", "furnace_sphere"]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 240
@@ -194,7 +194,7 @@ def test_cache_survives_a_killed_run(llvm, tmp_path):
 
 
 def test_spp_for_budget_reads_the_measured_ladder():
-    from validation.analysis import spp_for_budget
+    from mcillum.validation.analysis import spp_for_budget
 
     ladder = [4, 16, 64, 256]
     linear = [1e-3 * s for s in ladder]                     # time ∝ spp

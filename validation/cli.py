@@ -223,8 +223,8 @@ def _stamp(path: str):
 
 
 def _envmap(args) -> int:
-    import envmaps
-    from envmaps import catalog, procedural, safety
+    from mcillum import envmaps
+    from mcillum.envmaps import catalog, procedural, safety
 
     if args.list:
         rows = catalog.entries()
@@ -271,7 +271,7 @@ def _envmap(args) -> int:
 def _envmap_message(err: Exception, value: str, params: dict | None = None,
                     base_dir: str | None = None) -> str:
     """``err`` from loading or generating map ``value``, with what to do about it."""
-    from envmaps import catalog
+    from mcillum.envmaps import catalog
 
     text = str(err)
     if "not found" in text and value not in catalog.entries():
@@ -286,7 +286,7 @@ def _envmap_message(err: Exception, value: str, params: dict | None = None,
         try:
             import inspect
 
-            from envmaps import procedural
+            from mcillum.envmaps import procedural
 
             known = inspect.signature(getattr(procedural, value)).parameters
             text += f"; map '{value}' takes {', '.join(known)}"
@@ -466,7 +466,7 @@ def _message(err: BaseException, context: bool = True) -> str:
 def _load_scene(renders, path: str, defines: dict):
     """``renders.load_scene`` with each failure turned into a message that
     names the file (and line, where Mitsuba gives one) and what to do."""
-    import envmaps
+    from mcillum import envmaps
 
     shown = " ".join(f"-D {k}={v}" for k, v in defines.items())
     if os.path.isdir(path):
@@ -505,7 +505,7 @@ def _load_scene(renders, path: str, defines: dict):
 
 
 def _mcillum_integrators() -> list:
-    import integrators
+    from mcillum import integrators
     import mitsuba as mi
 
     names = []
@@ -578,41 +578,9 @@ def _is_interrupt(err: BaseException) -> bool:
     return isinstance(_root_cause(err), KeyboardInterrupt) or "KeyboardInterrupt" in str(err)
 
 
-def _route_sigint() -> None:
-    """Deliver Ctrl-C as KeyboardInterrupt whatever Mitsuba does with SIGINT.
-
-    Mitsuba's ``Integrator.render`` binding installs its own SIGINT handler for
-    the length of a render and restores the one it found; nested renders (the
-    mcillum integrators' ``render`` calls Mitsuba's) leave Mitsuba's installed
-    for good: Ctrl-C then only logs "Received interrupt signal, winding down.."
-    and is lost. So SIGINT is blocked in this thread, and with it in every
-    thread started later (Dr.Jit's workers inherit the mask); a watcher thread
-    takes each one and raises KeyboardInterrupt in the main thread. Only for the
-    process entry point (``argv=None``): callers of ``main([...])`` keep theirs.
-    """
-    import _thread
-    import signal
-    import threading
-
-    if (not hasattr(signal, "pthread_sigmask")
-            or threading.current_thread() is not threading.main_thread()
-            or signal.getsignal(signal.SIGINT) is not signal.default_int_handler):
-        return  # no POSIX masks, not the main thread, or Ctrl-C is ignored/handled
-
-    def watch():
-        while True:
-            signal.sigwait({signal.SIGINT})
-            _thread.interrupt_main()
-
-    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-    threading.Thread(target=watch, name="mcillum-sigint", daemon=True).start()
-
-
 def main(argv=None) -> int:
     parser = _parser()
     args = parser.parse_args(argv)
-    if argv is None:
-        _route_sigint()
     try:
         return args.run(args)
     except _Usage as e:

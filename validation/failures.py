@@ -122,7 +122,7 @@ def sun_split_verdict(case, defines: dict, failed: list, variant: str, cache_dir
     per pixel means the K renders are too few to tell (see envmaps/sun.py).
     Returns {estimator: numbers} with the sun's facts and the sunless test.
     """
-    from envmaps import sun
+    from mcillum.envmaps import sun
 
     sunless_path, facts = sun.without_sun(defines["envmap"])
     info, sdefines, scene = _load(case, {"envmap": sunless_path})
@@ -157,7 +157,7 @@ def _load(case, extra: dict | None = None):
 
 def _refusal(scene, name: str, params: dict) -> str | None:
     """The refusal message of ``name`` on ``scene``, or None if it renders."""
-    from integrators import UnreachableContentError
+    from mcillum.integrators import UnreachableContentError
 
     try:
         renders.render(scene, renders.make_integrator(name, params), 1, FIRST_SEED - 1)

@@ -13,10 +13,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-import integrators  # noqa: F401  (configures LLVM before drjit, registers plugins)
+from mcillum import integrators
 import drjit as dr
 import mitsuba as mi
-from integrators import passes
+from mcillum.integrators import passes
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
 
@@ -64,7 +64,7 @@ def resolve_defines(path: str | os.PathLike, envmap_policy: str = "clamp", **def
     (``envmaps.entries()``) or a file; either way it becomes the path of a
     checked file that obeys ``envmap_policy`` (see :mod:`envmaps.safety`).
     """
-    import envmaps
+    from mcillum import envmaps
 
     from .scenes import defaults
 

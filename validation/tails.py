@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from envmaps.sun import luminance
+from mcillum.envmaps.sun import luminance
 
 from . import metrics
 
