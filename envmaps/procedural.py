@@ -13,12 +13,17 @@ discrete map is from them.
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 
 #: Default resolution of generated maps (Mitsuba envmaps are 2:1).
 WIDTH, HEIGHT = 512, 256
+
+# Parameter types of the generators (``envmaps.catalog.generate`` checks them):
+# a Colour is one number or an RGB triple; a Vector three numbers; Lobes a
+# sequence of (axis Vector, sharpness, amplitude Colour).
+Colour = "float | tuple[float, float, float]"
+Vector = "tuple[float, float, float]"
+Lobes = "tuple[tuple[Vector, float, Colour], ...]"
 
 
 def directions(width: int, height: int, supersample: int = 1) -> np.ndarray:
@@ -78,7 +83,7 @@ def _unit(v) -> np.ndarray:
     return v / n
 
 
-def constant(radiance=1.0, width: int = 8, height: int = 4) -> np.ndarray:
+def constant(radiance: Colour = 1.0, width: int = 8, height: int = 4) -> np.ndarray:
     """Uniform radiance L everywhere (a furnace).
 
     Closed forms: irradiance on any plane E = π·L; total ∫ L dω = 4π·L; a
@@ -87,7 +92,7 @@ def constant(radiance=1.0, width: int = 8, height: int = 4) -> np.ndarray:
     return np.broadcast_to(_rgb(radiance), (height, width, 3)).astype(np.float32)
 
 
-def cap(radiance=10.0, alpha_deg: float = 20.0, direction=(0, 1, 0),
+def cap(radiance: Colour = 10.0, alpha_deg: float = 20.0, direction: Vector = (0, 1, 0),
         width: int = WIDTH, height: int = HEIGHT, supersample: int = 16) -> np.ndarray:
     """Radiance L inside a cone of half-angle α around ``direction``, 0 outside.
 
@@ -102,8 +107,9 @@ def cap(radiance=10.0, alpha_deg: float = 20.0, direction=(0, 1, 0),
                 width, height, supersample)
 
 
-def gradient(zenith=(0.25, 0.45, 1.0), horizon=(1.0, 0.95, 0.85),
-             ground=(0.2, 0.17, 0.15), width: int = 128, height: int = 64) -> np.ndarray:
+def gradient(zenith: Colour = (0.25, 0.45, 1.0), horizon: Colour = (1.0, 0.95, 0.85),
+             ground: Colour = (0.2, 0.17, 0.15), width: int = 128,
+             height: int = 64) -> np.ndarray:
     """Smooth sky: L(θ) = zenith·cosθ + horizon·(1 − cosθ) above the horizon
     (y = cosθ > 0) and a uniform ``ground`` below. Low frequency everywhere.
 
@@ -119,7 +125,7 @@ def gradient(zenith=(0.25, 0.45, 1.0), horizon=(1.0, 0.95, 0.85),
     return bake(radiance, width, height, supersample=1)
 
 
-def checker(low=0.1, high=1.0, squares: int = 16,
+def checker(low: Colour = 0.1, high: Colour = 1.0, squares: int = 16,
             width: int = WIDTH, height: int = HEIGHT, supersample: int = 4) -> np.ndarray:
     """High-frequency checkerboard in (φ, θ): ``2·squares`` columns in φ and
     ``squares`` rows in θ, alternating ``low`` and ``high``.
@@ -147,7 +153,7 @@ def checker(low=0.1, high=1.0, squares: int = 16,
 SG_LOBES = (((0, 1, 0), 4.0, (1.0, 0.9, 0.8)), ((0, 1, 0), 32.0, (4.0, 4.0, 4.0)))
 
 
-def sg(lobes=SG_LOBES, width: int = WIDTH, height: int = HEIGHT,
+def sg(lobes: Lobes = SG_LOBES, width: int = WIDTH, height: int = HEIGHT,
        supersample: int = 2) -> np.ndarray:
     """Sum of spherical Gaussians G(v) = a·exp(λ(μ·v − 1)).
 
@@ -195,35 +201,3 @@ def cell_solid_angles(height: int, width: int) -> np.ndarray:
     bounds = np.clip((np.arange(height + 1) - 0.5) / (height - 1), 0, 1) * np.pi
     edges = np.cos(bounds)
     return np.repeat(((edges[:-1] - edges[1:]) * (2 * np.pi / width))[:, None], width, axis=1)
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
-def write(path: str | os.PathLike, rgb: np.ndarray) -> str:
-    """Write ``rgb`` (H, W, 3) as a float32 OpenEXR file, atomically."""
-    import tempfile
-
-    import OpenEXR
-
-    path = os.fspath(path)
-    rgb = np.ascontiguousarray(rgb, dtype=np.float32)
-    if rgb.ndim != 3 or rgb.shape[2] != 3:
-        raise ValueError(f"expected an (H, W, 3) array, got shape {rgb.shape}")
-    directory = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(directory):
-        raise FileNotFoundError(f"output directory does not exist: {directory}")
-    fd, tmp = tempfile.mkstemp(prefix=".partial-", suffix=".exr", dir=directory)
-    os.close(fd)
-    try:
-        header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-        OpenEXR.File(header, {"RGB": rgb}).write(tmp)
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp creates 0600
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path

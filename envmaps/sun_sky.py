@@ -15,20 +15,18 @@ the whole map. Mitsuba's sunsky is z-up; the map is y-up like every envmap.
 
 from __future__ import annotations
 
+from contextlib import contextmanager
+
+import mitsuba as mi
 import numpy as np
 
 from . import procedural
-
-
-from contextlib import contextmanager
 
 
 @contextmanager
 def _variant(variant: str):
     """Run in ``variant`` (a vectorized one: millions of directions), then
     restore the caller's variant."""
-    import mitsuba as mi
-
     before = mi.variant()
     if before != variant:
         mi.set_variant(variant)

@@ -1,20 +1,23 @@
 """mcillum integrators: Monte Carlo estimators of the illumination integral as
-Mitsuba 3 plugins.
+Mitsuba 3 plugins, one per file.
 
-``import integrators`` does three things, in this order:
+Importing this package (``import mcillum`` does) does three things, in order:
 
 1. points Dr.Jit at the libLLVM of the pinned ``karellen-llvm-core`` wheel
    (unless ``DRJIT_LIBLLVM_PATH`` is set), *before* drjit is first imported;
-2. registers every estimator for the current Mitsuba variant (if one is set);
-3. re-registers them automatically whenever ``mi.set_variant`` switches.
+2. registers every plugin of this folder for the current Mitsuba variant (if
+   one is set): every module except the shared ones in :data:`SHARED`, the
+   common base ``estimator`` first;
+3. registers them again whenever ``mi.set_variant`` switches.
 
-``integrators.register()`` does step 2 by hand; calling it twice is harmless.
-Registered plugin names are listed in :data:`PLUGINS`.
+:func:`register` does step 2 by hand; calling it twice is harmless. The
+estimators' facts are in :mod:`.registry` (``registry.names()``).
 """
 
 from __future__ import annotations
 
 import importlib
+import pkgutil
 import sys
 
 from . import _llvm
@@ -23,27 +26,25 @@ _llvm.configure()  # must precede the first `import drjit` in the process
 
 import mitsuba as mi  # noqa: E402  (after the LLVM set-up on purpose)
 
+from . import registry  # noqa: E402,F401
 from .scene_checks import UnreachableContentError  # noqa: E402,F401  (variant-free)
 
-#: Registered plugin name → module (inside this package) that defines it.
-PLUGINS = {
-    "uniform_hemisphere": "uniform_hemisphere",
-    "cosine_hemisphere": "cosine_hemisphere",
-    "bsdf_sampling": "bsdf_sampling",
-    "emitter_sampling": "emitter_sampling",
-    "mis": "mis",
-    "phong": "phong",  # a BSDF, not an integrator
-}
-
-#: Modules whose classes derive from a variant's types, in reload order:
-#: the shared base first, then the plugins that subclass it.
-_VARIANT_MODULES = ("estimator", *dict.fromkeys(PLUGINS.values()))
+#: Modules that hold no plugin and do not depend on the variant.
+SHARED = ("_llvm", "passes", "registry", "scene_checks")
+#: The base class every estimator derives from: (re)loaded before the plugins.
+BASE = "estimator"
 
 _registered_for: str | None = None
 
 
+def plugin_modules() -> list[str]:
+    """The plugin modules of this folder (an estimator or a BSDF each)."""
+    names = sorted(m.name for m in pkgutil.iter_modules(__path__))
+    return [n for n in names if n not in SHARED and n != BASE]
+
+
 def register() -> str:
-    """Register every mcillum integrator for the current Mitsuba variant.
+    """Register every mcillum plugin for the current Mitsuba variant.
 
     Idempotent; needed by hand only if the automatic variant callback was
     removed (e.g. by ``mi.detail.clear_variant_callbacks()``). Returns the
@@ -54,15 +55,15 @@ def register() -> str:
     if variant is None:
         raise RuntimeError(
             "no Mitsuba variant is set: call mi.set_variant('llvm_ad_rgb') "
-            "(or 'scalar_rgb', 'cuda_ad_rgb') before integrators.register()")
+            "(or 'scalar_rgb', 'cuda_ad_rgb') before mcillum.register()")
     _llvm.check(variant)
     if _registered_for == variant:
         return variant
-    for name in _VARIANT_MODULES:
+    for name in (BASE, *plugin_modules()):
         qualified = f"{__name__}.{name}"
         module = sys.modules.get(qualified)
         # (Re)executing a plugin module rebinds its class to this variant's
-        # base types and calls mi.register_integrator at its bottom.
+        # base types and registers it at its bottom.
         if module is None:
             importlib.import_module(qualified)
         else:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import mitsuba as mi
 
+from . import registry
 from .estimator import IlluminationEstimator
 
 # ----------------------------- Strategy ---------------------------------
@@ -65,11 +66,14 @@ class BSDFSamplingIntegrator(IlluminationEstimator):
     """
 
     plugin_name = "bsdf_sampling"
+    display_name = "BSDF sampling"
+    colour = "#2ca02c"
     reachable = frozenset({"delta_bsdf", "transmission"})
+    max_direction_pdf = None                   # as large as the narrowest lobe makes it
+    listing_order = 30
 
     def sample_direction(self, scene, sampler, si, bsdf, ctx):
         return sample_bsdf_direction(bsdf, ctx, si, sampler.next_1d(), sampler.next_2d())
 
 
-mi.register_integrator("bsdf_sampling",
-                       lambda props, cls=BSDFSamplingIntegrator: cls(props))
+registry.register(BSDFSamplingIntegrator)

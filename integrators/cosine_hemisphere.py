@@ -5,6 +5,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from . import registry
 from .estimator import IlluminationEstimator
 
 # ----------------------------- Strategy ---------------------------------
@@ -72,9 +73,13 @@ class CosineHemisphereIntegrator(IlluminationEstimator):
     """
 
     plugin_name = "cosine_hemisphere"
+    display_name = "cosine-weighted hemisphere sampling"
+    colour = "#1f77b4"
+    max_direction_pdf = dr.inv_pi              # p(ω) = cos θ / π ≤ 1/π
+    listing_order = 20
     sample_local = staticmethod(sample_cosine_hemisphere)
     pdf_local = staticmethod(cosine_hemisphere_pdf)
+    invert_local = staticmethod(invert_cosine_hemisphere)
 
 
-mi.register_integrator("cosine_hemisphere",
-                       lambda props, cls=CosineHemisphereIntegrator: cls(props))
+registry.register(CosineHemisphereIntegrator)

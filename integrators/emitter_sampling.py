@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import mitsuba as mi
 
+from . import registry
 from .bsdf_sampling import BSDFSamplingIntegrator
 
 # ----------------------------- Strategy ---------------------------------
@@ -70,11 +71,14 @@ class EmitterSamplingIntegrator(BSDFSamplingIntegrator):
     """
 
     plugin_name = "emitter_sampling"
+    display_name = "emitter sampling (next-event estimation)"
+    colour = "#9467bd"
     reachable = frozenset({"delta_bsdf", "delta_emitter"})
+    max_direction_pdf = None                   # emitter samples find any source
+    listing_order = 40
     use_nee = True
     sample_emitter = staticmethod(sample_emitter_direction)
     emitter_pdf = staticmethod(emitter_direction_pdf)
 
 
-mi.register_integrator("emitter_sampling",
-                       lambda props, cls=EmitterSamplingIntegrator: cls(props))
+registry.register(EmitterSamplingIntegrator)

@@ -25,7 +25,7 @@ Depth, Russian roulette, emitter hiding and the validity mask follow Mitsuba's
 ``path`` exactly, so ``path`` at the same ``max_depth`` is the reference.
 
 This module must be (re)imported after a variant is set: its class derives
-from that variant's ``mi.SamplingIntegrator``. ``integrators.register()``
+from that variant's ``mi.SamplingIntegrator``. ``mcillum.integrators.register()``
 takes care of it.
 """
 
@@ -75,8 +75,11 @@ class IlluminationEstimator(mi.SamplingIntegrator):
     r"""
     Base class of the mcillum estimators (not registered as a plugin).
 
-    Subclasses set :attr:`plugin_name` and the strategy pair
-    :meth:`sample_local` / :meth:`pdf_local`; they inherit the parameters below.
+    Subclasses set :attr:`plugin_name`, their facts (:attr:`display_name`,
+    :attr:`colour`, :attr:`reachable`, :attr:`max_direction_pdf`,
+    :attr:`listing_order`) and the strategy pair :meth:`sample_local` /
+    :meth:`pdf_local`, and end their file with ``registry.register(cls)``;
+    they inherit the parameters below.
 
     .. pluginparameters::
 
@@ -104,11 +107,22 @@ class IlluminationEstimator(mi.SamplingIntegrator):
          :attr:`unreachable` lists it. (Default: |false|)
     """
 
-    #: Name under which the subclass is registered (used in messages).
-    plugin_name = "illumination_estimator"
+    # ------------ Facts (read by registry.py; see its docstring) -----------
 
-    #: Kinds of :class:`scene_checks.Problem` this strategy handles anyway.
+    #: Name under which the subclass is registered with Mitsuba.
+    plugin_name = "illumination_estimator"
+    #: A few words for people (tables, legends).
+    display_name: str | None = None
+    #: Its colour on every chart of a report.
+    colour: str | None = None
+    #: Kinds of scene content (scene_checks.KINDS) it renders although a
+    #: continuous hemisphere pdf cannot reach them; it refuses the others.
     reachable: frozenset[str] = frozenset()
+    #: Largest density it puts on any direction (None: depends on the BSDF,
+    #: or next-event estimation finds small sources anyway).
+    max_direction_pdf: float | None = None
+    #: Position in tables and charts (path, the reference, comes last).
+    listing_order = 100
 
     #: One emitter sample per vertex (next-event estimation)?
     use_nee = False
@@ -148,6 +162,10 @@ class IlluminationEstimator(mi.SamplingIntegrator):
     def pdf_local(w: mi.Vector3f) -> mi.Float:
         """Solid-angle density of :meth:`sample_local` (0 where z ≤ 0)."""
         raise NotImplementedError
+
+    #: Inverse of :meth:`sample_local` (direction → the u that maps to it),
+    #: where the strategy has one.
+    invert_local = None
 
     def sample_direction(self, scene, sampler, si, bsdf, ctx):
         """(ω local, weight f cos/p, pdf p, delta?, η) of the next direction.

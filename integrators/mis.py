@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import mitsuba as mi
 
+from . import registry
 from .bsdf_sampling import BSDFSamplingIntegrator
 from .emitter_sampling import emitter_direction_pdf, sample_emitter_direction
 from .estimator import mis_weight  # noqa: F401  (the power heuristic, re-exported)
@@ -58,11 +59,15 @@ class MISIntegrator(BSDFSamplingIntegrator):
     """
 
     plugin_name = "mis"
+    display_name = "multiple importance sampling (as path)"
+    colour = "#ff7f0e"
     reachable = frozenset({"delta_bsdf", "transmission", "delta_emitter"})
+    max_direction_pdf = None                   # emitter samples find any source
+    listing_order = 50
     use_nee = True
     use_mis = True
     sample_emitter = staticmethod(sample_emitter_direction)
     emitter_pdf = staticmethod(emitter_direction_pdf)
 
 
-mi.register_integrator("mis", lambda props, cls=MISIntegrator: cls(props))
+registry.register(MISIntegrator)

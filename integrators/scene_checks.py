@@ -26,6 +26,11 @@ import numpy as np
 import mitsuba as mi
 
 
+#: Every kind of :class:`Problem`: what a continuous pdf over the reflection
+#: hemisphere cannot reach (estimators declare which they reach anyway).
+KINDS = ("delta_emitter", "delta_bsdf", "transmission", "medium")
+
+
 @dataclass(frozen=True)
 class Problem:
     """One piece of scene content an estimator cannot represent."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from . import registry
 from .estimator import IlluminationEstimator
 
 # ----------------------------- Strategy ---------------------------------
@@ -72,9 +73,13 @@ class UniformHemisphereIntegrator(IlluminationEstimator):
     """
 
     plugin_name = "uniform_hemisphere"
+    display_name = "uniform hemisphere sampling"
+    colour = "#d62728"
+    max_direction_pdf = dr.inv_two_pi          # p(ω) = 1/(2π) everywhere
+    listing_order = 10
     sample_local = staticmethod(sample_uniform_hemisphere)
     pdf_local = staticmethod(uniform_hemisphere_pdf)
+    invert_local = staticmethod(invert_uniform_hemisphere)
 
 
-mi.register_integrator("uniform_hemisphere",
-                       lambda props, cls=UniformHemisphereIntegrator: cls(props))
+registry.register(UniformHemisphereIntegrator)

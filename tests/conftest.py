@@ -1,7 +1,9 @@
-"""Shared fixtures: variants, scene paths, batches of independent renders."""
+"""Shared fixtures: variants, scene paths, the estimators under test (read from
+the registry), batches of independent renders, and broken twins."""
 
 from __future__ import annotations
 
+import importlib
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +12,7 @@ import pytest
 import mcillum  # noqa: F401  (LLVM set-up before drjit; registers the plugins)
 import mitsuba as mi
 
+from mcillum.integrators import registry
 from mcillum.validation import renders
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -18,11 +21,32 @@ SCENES = ROOT / "scenes"
 #: Variants every rendering test runs in (scalar with tiny images).
 VARIANTS = ["scalar_rgb", "llvm_ad_rgb"]
 
-#: The hemisphere estimators (the foundation issue's pair).
-ESTIMATORS = ["uniform_hemisphere", "cosine_hemisphere"]
+renders.set_variant("llvm_ad_rgb")      # the registry fills when a variant is set
 
-#: Every estimator of this package.
-ALL_ESTIMATORS = ESTIMATORS + ["bsdf_sampling", "emitter_sampling", "mis"]
+
+def _base():
+    return importlib.import_module("mcillum.integrators.estimator").IlluminationEstimator
+
+
+def plugin_class(name: str):
+    """The plugin class of registered estimator ``name`` (current variant)."""
+    return type(mi.load_dict({"type": name}))
+
+
+def estimators() -> list[str]:
+    """Every registered mcillum estimator (registry order)."""
+    return registry.names()
+
+
+def hemisphere_estimators() -> list[str]:
+    """Estimators defined by a pure direction pair ``sample_local`` /
+    ``pdf_local`` on the hemisphere (they get a wrong-pdf twin)."""
+    return [n for n in estimators() if plugin_class(n).pdf_local is not _base().pdf_local]
+
+
+#: Fixed at collection time (parametrize needs lists).
+ALL_ESTIMATORS = estimators()
+HEMISPHERE = hemisphere_estimators()
 
 
 @pytest.fixture(params=VARIANTS)
@@ -47,22 +71,10 @@ def batch(scene, integrator, spp: int, k: int, first_seed: int = 0) -> np.ndarra
                      for seed in range(first_seed, first_seed + k)])
 
 
-def wrong_pdf_integrator(base: str = "cosine_hemisphere", factor: float = 1.05,
-                         props: "mi.Properties | None" = None):
-    """A deliberately biased estimator: ``base`` with its pdf scaled by ``factor``.
-
-    The class is built for the current variant (plugin classes bind to it).
-    """
-    return wrong_pdf_class(base, factor)(props or mi.Properties())
-
-
 def wrong_pdf_class(base: str = "cosine_hemisphere", factor: float = 1.05):
-    """The class of :func:`wrong_pdf_integrator` (for mi.register_integrator)."""
-    import importlib
-
-    module = importlib.import_module(f"mcillum.integrators.{base}")
-    cls = next(c for c in vars(module).values()
-               if isinstance(c, type) and getattr(c, "plugin_name", None) == base)
+    """A deliberately biased estimator: ``base`` with its pdf scaled by
+    ``factor`` (the class binds to the current variant)."""
+    cls = plugin_class(base)
     pdf = cls.pdf_local
 
     class WrongPdf(cls):
@@ -70,3 +82,9 @@ def wrong_pdf_class(base: str = "cosine_hemisphere", factor: float = 1.05):
         pdf_local = staticmethod(lambda w: factor * pdf(w))
 
     return WrongPdf
+
+
+def wrong_pdf_integrator(base: str = "cosine_hemisphere", factor: float = 1.05,
+                         props: "mi.Properties | None" = None):
+    """An instance of :func:`wrong_pdf_class`."""
+    return wrong_pdf_class(base, factor)(props or mi.Properties())

@@ -1,11 +1,14 @@
-"""Bad user input ("Where methods fail", item 6): each command answers a
-mistake with one message that says what was wrong and what to do, exits 1
-(found while loading or rendering) or 2 (usage: the command line alone is
-wrong), prints no Python traceback, and leaves no partial file where a complete
-one is expected, also when it is interrupted (SIGINT) or killed (SIGKILL)
-mid-write."""
+"""Bad user input: each command answers a mistake with one message that says
+what was wrong and what to do, exits 2 (usage: the command line alone is
+wrong, including an unknown integrator, integrator parameter or map
+parameter, in every subcommand) or 1 (found while loading or rendering),
+prints no Python traceback, and leaves no partial file where a complete one is
+expected, also when it is interrupted (SIGINT), terminated (SIGTERM) or killed
+(SIGKILL) mid-write; a killed writer's hidden temporary file is removed by the
+next run into the same directory."""
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -14,8 +17,8 @@ import time
 import numpy as np
 import pytest
 
-from mcillum.envmaps import procedural
-from mcillum.validation import cli, images
+from mcillum import files
+from mcillum.validation import cli
 
 from conftest import ROOT, SCENES
 
@@ -36,7 +39,7 @@ def tmp(tmp_path, monkeypatch):
     (tmp_path / "binary.xml").write_bytes(bytes(range(256)))
     rgb = np.full((8, 16, 3), 0.5, np.float32)
     rgb[1, 2, 0] = np.nan
-    procedural.write(tmp_path / "nan.exr", rgb)
+    files.write_exr(tmp_path / "nan.exr", rgb)
     (tmp_path / "afile").write_text("a regular file")
     (tmp_path / "adir.exr").mkdir()
     return tmp_path
@@ -69,26 +72,26 @@ RENDER = [
      "tags mismatch (line 4, col 3): fix the XML at that line"),
     ("binary-scene", ["{tmp}/binary.xml", "-i", "path"], 1, "not a UTF-8 text (XML) file"),
     ("scene-is-directory", ["{tmp}", "-i", "path"], 1, "it is a directory; give an XML file"),
-    ("unknown-integrator", [CORNELL, "-i", "nope"], 1,
+    ("unknown-integrator", [CORNELL, "-i", "nope"], 2,
      f"unknown integrator 'nope': {MCILLUM_INTEGRATORS}; any Mitsuba integrator also works"),
-    ("not-an-integrator", [CORNELL, "-i", "phong"], 1,
+    ("not-an-integrator", [CORNELL, "-i", "phong"], 2,
      f"'phong' is a BSDF plugin, not an integrator: {MCILLUM_INTEGRATORS}"),
-    ("unknown-param", [CORNELL, "-i", "cosine_hemisphere", "-p", "foo=1"], 1,
+    ("unknown-param", [CORNELL, "-i", "cosine_hemisphere", "-p", "foo=1"], 2,
      "integrator 'cosine_hemisphere' has no parameter foo: mcillum's integrators take "
      "max_depth, rr_depth, hide_emitters and allow_unreachable"),
-    ("unknown-param-path", [CORNELL, "-i", "path", "-p", "foo=1"], 1,
+    ("unknown-param-path", [CORNELL, "-i", "path", "-p", "foo=1"], 2,
      "integrator 'path' has no parameter foo"),
     ("unknown-define", [CORNELL, "-i", "path", "-D", "foo=1"], 1,
      "has no $-parameter foo (given with -D); its parameters: integrator, max_depth, spp, res"),
-    ("max_depth=abc", [CORNELL, "-i", "cosine_hemisphere", "-p", "max_depth=abc"], 1,
+    ("max_depth=abc", [CORNELL, "-i", "cosine_hemisphere", "-p", "max_depth=abc"], 2,
      "integrator 'cosine_hemisphere' rejected -p max_depth=abc: max_depth must be an "
      "integer"),
-    ("max_depth=2.5", [CORNELL, "-i", "mis", "-p", "max_depth=2.5"], 1,
+    ("max_depth=2.5", [CORNELL, "-i", "mis", "-p", "max_depth=2.5"], 2,
      "max_depth must be an integer (<integer name=\"max_depth\" value=\"...\"/>), got float 2.5"),
-    ("max_depth=abc-path", [CORNELL, "-i", "path", "-p", "max_depth=abc"], 1,
+    ("max_depth=abc-path", [CORNELL, "-i", "path", "-p", "max_depth=abc"], 2,
      "integrator 'path' rejected -p max_depth=abc: The property \"max_depth\" has the wrong "
      "type (expected integer, got string)"),
-    ("hide_emitters=3", [CORNELL, "-i", "cosine_hemisphere", "-p", "hide_emitters=3"], 1,
+    ("hide_emitters=3", [CORNELL, "-i", "cosine_hemisphere", "-p", "hide_emitters=3"], 2,
      "The property \"hide_emitters\" has the wrong type (expected boolean, got integer)"),
     ("spp=0", [CORNELL, "-i", "path", "--spp", "0"], 2, "--spp must be >= 1, got 0"),
     ("spp=-3", [CORNELL, "-i", "path", "--spp", "-3"], 2, "--spp must be >= 1, got -3"),
@@ -98,7 +101,7 @@ RENDER = [
     ("res=abc", [CORNELL, "-i", "path", "-D", "res=abc"], 1,
      'could not parse integer value "abc" (check the values of -D res=abc)'),
     ("res=2.5", [CORNELL, "-i", "path", "-D", "res=2.5"], 1,
-     'cornell_box.xml (line 41, col 14): could not parse integer value "2.5"'),
+     'cornell_box.xml (line 40, col 14): could not parse integer value "2.5"'),
     ("res=0", [CORNELL, "-i", "path", "-D", "res=0"], 1,
      "has a 0x0 film: nothing to render; give it a positive size (got -D res=0)"),
     ("res=-2", [CORNELL, "-i", "path", "-D", "res=-2"], 1,
@@ -141,11 +144,12 @@ ENVMAP = [
     ("unknown-name", ["nope"], 1, "environment map not found: nope; give a map name"),
     ("nan-pixel", ["{tmp}/nan.exr"], 1, "has 1 NaN values (policy 'clamp')"),
     ("nan-pixel-strict", ["{tmp}/nan.exr", "--policy", "strict"], 1, "(policy 'strict')"),
-    ("param-not-a-number", ["cap", "-p", "alpha_deg=abc"], 1,
-     "(not numbers: alpha_deg=abc); map 'cap' takes radiance, alpha_deg, direction"),
-    ("param-out-of-range", ["cap", "-p", "alpha_deg=120"], 1,
+    ("param-not-a-number", ["cap", "-p", "alpha_deg=abc"], 2,
+     "map 'cap': alpha_deg must be a number, got 'abc'; map 'cap' takes radiance, "
+     "alpha_deg, direction"),
+    ("param-out-of-range", ["cap", "-p", "alpha_deg=120"], 2,
      "alpha_deg must be in (0, 90], got 120"),
-    ("unknown-param", ["cap", "-p", "foo=1"], 1, "unexpected keyword argument 'foo'"),
+    ("unknown-param", ["cap", "-p", "foo=1"], 2, "map 'cap' has no parameter foo"),
     ("output-under-a-file", ["cap", "-o", "{tmp}/afile/out.exr"], 2,
      "{tmp}/afile is a file, not a directory"),
     ("output-in-proc", ["cap", "-o", "/proc/out.exr"], 2, "no file can be created in /proc"),
@@ -199,7 +203,7 @@ REPORT = [
     ("other-version", '{"schema": "mcillum.results", "version": 0}', 1,
      "has results version 0; this mcillum reads version 1: run `mcillum validate --out"),
     ("missing-field", '{"schema": "mcillum.results", "version": 1}', 1,
-     "results.json lacks the field 'scenes': run `mcillum validate --out {tmp}/run` again"),
+     "results.json lacks the field 'created': run `mcillum validate --out {tmp}/run` again"),
 ]
 
 
@@ -221,10 +225,11 @@ def test_report(tmp, capsys, text, code, phrase):
 #: MARKER is created, and the process sleeps until a signal arrives.
 STALLED_WRITE = """
 import contextlib, os, sys, time
-from mcillum.validation import cli, images
+from mcillum import files
+from mcillum.validation import cli
 
 suffix, marker = sys.argv[1], sys.argv[2]
-real = images.atomic_path
+real = files.atomic_path
 
 @contextlib.contextmanager
 def stalled(path):
@@ -237,7 +242,7 @@ def stalled(path):
             for _ in range(1200):   # busy, as a long write would be
                 time.sleep(0.1)
 
-images.atomic_path = stalled
+files.atomic_path = stalled
 sys.argv = ["mcillum", *sys.argv[3:]]
 sys.exit(cli.main())                    # as the console script calls it
 """
@@ -259,27 +264,47 @@ def stall_and_signal(tmp_path, suffix, args, sig, deadline=120):
     return proc.returncode, err
 
 
+SIGNALS = [signal.SIGINT, signal.SIGTERM, signal.SIGKILL]
+
+
 @pytest.mark.parametrize("stalled", [".exr", ".png"])
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGKILL], ids=["SIGINT", "SIGKILL"])
+@pytest.mark.parametrize("sig", SIGNALS, ids=[s.name for s in SIGNALS])
 def test_render_interrupted_mid_write_leaves_no_truncated_output(tmp_path, sig, stalled):
     out = tmp_path / "out" / "cb.exr"
     out.parent.mkdir()
-    code, err = stall_and_signal(tmp_path, stalled, [
-        "render", CORNELL, "-i", "cosine_hemisphere", "--spp", "1", "-D", "res=4",
-        "-o", str(out)], sig)
+    args = ["render", CORNELL, "-i", "cosine_hemisphere", "--spp", "1", "-D", "res=4",
+            "-o", str(out)]
+    code, err = stall_and_signal(tmp_path, stalled, args, sig)
     assert "Traceback" not in err, err
     if sig == signal.SIGINT:
         assert code == 130 and "mcillum render: interrupted; no partial output files" in err
-        assert not partials(tmp_path), "SIGINT must remove the temporary file"
+    elif sig == signal.SIGTERM:
+        assert code == 143 and "mcillum render: terminated (SIGTERM)" in err
     else:                                    # nothing runs after SIGKILL: a hidden
-        assert code == -signal.SIGKILL       # .partial-* may stay, never the output
+        assert code == -signal.SIGKILL       # .partial-* stays, never the output
+        assert partials(tmp_path)
+    if sig != signal.SIGKILL:
+        assert not partials(tmp_path), f"{sig.name} must remove the temporary file"
     left = sorted(p.name for p in out.parent.iterdir() if not p.name.startswith(".partial-"))
     if stalled == ".exr":                    # stopped while writing the EXR: no output
         assert left == []
     else:                                    # stopped while writing the PNG: the EXR
         assert left == ["cb.exr"]            # before it is complete, the PNG absent
-        image, meta = images.read_exr(out)
+        image, meta = files.read_exr(out)
         assert image.shape == (4, 4, 3) and meta["spp"] == 1
+    if sig == signal.SIGKILL:                # the next run cleans up after the dead one
+        done = subprocess.run([sys.executable, "-m", "mcillum.validation.cli", *args],
+                              cwd=ROOT, capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr
+        assert not partials(tmp_path), "the killed writer's temporary file was left"
+
+
+def test_stale_partials_of_live_processes_are_kept(tmp_path):
+    """Only a dead writer's temporary files are removed: a live process (this
+    one) may still be writing its own."""
+    with files.atomic_path(tmp_path / "x.exr") as tmp:
+        assert files.remove_stale_partials(tmp_path) == []
+        assert os.path.exists(tmp)
 
 
 @pytest.mark.parametrize("stage", ["fresh", "over-an-earlier-run", "writing-the-report"])

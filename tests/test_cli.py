@@ -6,7 +6,8 @@ import sys
 import numpy as np
 import pytest
 
-from mcillum.validation import cli, images
+from mcillum import files
+from mcillum.validation import cli
 
 from conftest import SCENES
 
@@ -19,7 +20,7 @@ def test_render_writes_exr_with_metadata_and_png(llvm, tmp_path):
                      "--seed", "7", "-p", "max_depth=2", "-D", "res=12",
                      "--variant", "llvm_ad_rgb", "-o", str(out)])
     assert code == 0
-    image, meta = images.read_exr(out)
+    image, meta = files.read_exr(out)
     assert image.shape == (12, 12, 3) and image.dtype == np.float32
     assert np.isfinite(image).all() and image.max() > 0
     assert meta["integrator"] == "cosine_hemisphere" and meta["params"] == "max_depth=2"
@@ -35,7 +36,7 @@ def test_render_in_scalar_variant(tmp_path):
     out = tmp_path / "s.exr"
     assert cli.main(["render", CORNELL, "-i", "uniform_hemisphere", "--spp", "2",
                      "-D", "res=3", "--variant", "scalar_rgb", "-o", str(out)]) == 0
-    assert images.read_exr(out)[1]["variant"] == "scalar_rgb"
+    assert files.read_exr(out)[1]["variant"] == "scalar_rgb"
 
 
 @pytest.mark.parametrize("args, message", [
@@ -43,11 +44,25 @@ def test_render_in_scalar_variant(tmp_path):
     (["-i", "no_such_integrator"], "no_such_integrator"),
     (["-i", "cosine_hemisphere", "-p", "max_depth=-5"], "max_depth = -5 is invalid"),
 ])
-def test_render_errors_exit_1_with_the_cause(llvm, tmp_path, capsys, args, message):
+def test_integrator_errors_are_usage_errors(llvm, tmp_path, capsys, args, message):
     out = tmp_path / "x.exr"
-    assert cli.main(["render", CORNELL, *args, "-o", str(out)]) == 1
-    assert message in capsys.readouterr().err
+    with pytest.raises(SystemExit) as info:
+        cli.main(["render", CORNELL, *args, "-o", str(out)])
+    assert info.value.code == 2 and message in capsys.readouterr().err
     assert not out.exists()
+
+
+@pytest.mark.parametrize("command", [
+    ["render", CORNELL, "-o", "{tmp}/x.exr", "-i"],
+    ["bench", CORNELL, "--integrators"],
+    ["validate", "--out", "{tmp}/out", "--cache", "{tmp}/cache", "--estimators"],
+])
+def test_an_unknown_integrator_exits_2_in_every_subcommand(llvm, tmp_path, capsys, command):
+    args = [a.replace("{tmp}", str(tmp_path)) for a in command] + ["no_such_integrator"]
+    with pytest.raises(SystemExit) as info:
+        cli.main(args)
+    assert info.value.code == 2
+    assert "unknown integrator 'no_such_integrator'" in capsys.readouterr().err
 
 
 def test_refused_scene_exits_1_naming_the_light(llvm, tmp_path, capsys):
@@ -65,7 +80,7 @@ def test_opt_in_render_is_written_and_marked_biased(llvm, tmp_path, capsys):
                      "-p", "allow_unreachable=true", "-D", "res=4", "-o", str(out)])
     err = capsys.readouterr().err
     assert code == 0 and "BIASED" in err and "'key_light'" in err
-    _, meta = images.read_exr(out)
+    _, meta = files.read_exr(out)
     assert "'key_light'" in meta["biased"]
 
 
@@ -102,5 +117,5 @@ def test_committed_sky_matches_its_generator():
 
     here = os.path.dirname(generated.__file__)
     for name, make in generated.COMMITTED.items():
-        stored, _ = images.read_exr(os.path.join(here, name))
+        stored, _ = files.read_exr(os.path.join(here, name))
         np.testing.assert_array_equal(stored, make())

@@ -6,11 +6,11 @@ import json
 import numpy as np
 import pytest
 
-from mcillum import envmaps
+from mcillum import envmaps, files
 from mcillum.envmaps import catalog, probes, procedural, safety
 from mcillum.validation import cli, renders, scenes, statistics
 
-from conftest import ESTIMATORS, batch, wrong_pdf_integrator
+from conftest import ALL_ESTIMATORS, batch, wrong_pdf_integrator
 
 ALBEDO = 0.5
 ALPHA = 0.001
@@ -63,7 +63,7 @@ def render_cap_plane(name, integrator):
 
 
 @pytest.mark.parametrize("name", CLOSED_FORMS)
-@pytest.mark.parametrize("estimator", ESTIMATORS)
+@pytest.mark.parametrize("estimator", ALL_ESTIMATORS)
 def test_rendered_plane_matches_closed_form(llvm, name, estimator):
     """ρ·E/π on the plane, within the 99.9% t-interval of 12 renders widened by
     the map's measured discretisation error and the interpolation allowance."""
@@ -90,7 +90,7 @@ def crafted(tmp_path, name, **bad):
     rgb = np.full((8, 16, 3), 0.5, np.float32)
     for (y, x, c), value in bad.values():
         rgb[y, x, c] = value
-    return procedural.write(tmp_path / f"{name}.exr", rgb)
+    return files.write_exr(tmp_path / f"{name}.exr", rgb)
 
 
 @pytest.mark.parametrize("value, word", [(np.nan, "NaN"), (np.inf, "infinite"),
@@ -127,11 +127,11 @@ def test_scene_gets_the_sanitised_map(llvm, tmp_path, monkeypatch):
     monkeypatch.setenv("MCILLUM_CACHE", str(tmp_path / "cache"))
     rgb = procedural.constant(1.0, 16, 8).copy()
     rgb[2:4, :, :] = -3.0                     # a band of strongly negative radiance
-    path = procedural.write(tmp_path / "negative.exr", rgb)
+    path = files.write_exr(tmp_path / "negative.exr", rgb)
     resolved, report = envmaps.resolve(path)
     assert resolved != str(path) and report.changed_pixels == 32
     scene = renders.load_scene(scenes.path("cap_plane"), envmap=path)
-    for name in ESTIMATORS:
+    for name in ALL_ESTIMATORS:
         image = renders.render(scene, renders.make_integrator(name), 16).image
         assert np.isfinite(image).all() and image.min() >= 0
     with pytest.raises(safety.EnvmapError, match="negative"):
@@ -177,8 +177,28 @@ def test_missing_wheel_says_how_to_install(monkeypatch):
 def test_unknown_names_are_clear_errors():
     with pytest.raises(safety.EnvmapError, match="available: city"):
         probes.path("atlantis")
-    with pytest.raises(safety.EnvmapError, match="bad parameters for map 'cap'"):
+    with pytest.raises(catalog.ParameterError, match="map 'cap' has no parameter beta; "
+                                                   "map 'cap' takes radiance, alpha_deg"):
         catalog.generate("cap", beta=1)
+
+
+@pytest.mark.parametrize("name, params, phrase", [
+    ("cap", {"alpha_deg": "abc"}, "map 'cap': alpha_deg must be a number, got 'abc'"),
+    ("cap", {"direction": 3}, "map 'cap': direction must be three numbers, got 3"),
+    ("cap", {"radiance": (1, 2)}, "radiance must be a number or an RGB triple, got (1, 2)"),
+    ("checker", {"squares": 2.5}, "map 'checker': squares must be a whole number, got 2.5"),
+    ("constant", {"width": True}, "map 'constant': width must be a whole number, got True"),
+    ("sun_sky", {"turbidity": "hazy"}, "map 'sun_sky': turbidity must be a number"),
+    ("cap", {"alpha_deg": 120}, "map 'cap': alpha_deg must be in (0, 90], got 120"),
+])
+def test_generator_parameters_are_checked_and_the_bad_one_named(name, params, phrase):
+    with pytest.raises(catalog.ParameterError) as info:
+        catalog.generate(name, **params)
+    assert phrase in str(info.value)
+
+
+def test_whole_numbers_given_as_floats_are_accepted():
+    assert catalog.generate("checker", squares=4.0, width=16.0, height=8).shape == (8, 16, 3)
 
 
 # --------------------------------- Sun-sky -------------------------------------

@@ -2,9 +2,9 @@
 opt-in biased image, the glossy sweep, and no NaN/Inf/negative radiance from
 any estimator in any failure case across 64 seeds.
 
-Statistical verdicts use the batch-means test of validation/statistics.py at
-family-wise α = 0.01 (Šidák over pixels × channels, plus the image-mean test),
-with the Edgeworth reliability rule of validation/tails.py. The same case run
+Verdicts use the batch-means test of validation/statistics.py at family-wise
+α = 0.01 (Šidák over pixels × channels, plus the image-mean test), a rejection
+counting only if it replicates in fresh renders (checks.py). The same case run
 with a cosine estimator whose pdf is 5 % off must come out "biased".
 """
 
@@ -14,7 +14,9 @@ import pytest
 import mitsuba as mi
 
 from mcillum.envmaps import procedural, sun
-from mcillum.validation import failures, profiles, renders, statistics, tails
+from mcillum.integrators import registry
+from mcillum.validation import pipeline, profiles, renders, statistics, tails
+from mcillum.validation.context import Run
 
 from conftest import ALL_ESTIMATORS, wrong_pdf_class
 
@@ -41,13 +43,13 @@ def test_spp_to_match_scales_with_the_relmse_ratio():
     path = rng.exponential(0.01, 64)
     est = 4 * path
     m = tails.spp_to_match(est, path, 16)
-    assert m["spp"] == pytest.approx(64)
-    assert m["low"] < 64 < m["high"]
+    assert m.spp == pytest.approx(64)
+    assert m.low < 64 < m.high
 
 
 def test_percentiles_are_ordered():
     p = tails.percentiles(np.random.default_rng(2).lognormal(size=64))
-    assert p["median"] <= p["p90"] <= p["p99"] <= p["max"]
+    assert p.median <= p.p90 <= p.p99 <= p.max
 
 
 def test_sun_split_finds_a_bright_cap_and_its_solid_angle():
@@ -78,10 +80,9 @@ def _case(case_id, **changes):
 @pytest.fixture
 def run_case(llvm, tmp_path):
     def run(case, estimators):
-        checks = []
-        out = failures.run_case(case, estimators, str(tmp_path / "out"),
-                                str(tmp_path / "cache"), "llvm_ad_rgb", profiles.QUICK, checks)
-        return {e["name"]: e for e in out["estimators"]}, checks, out
+        ctx = Run(profiles.QUICK, "llvm_ad_rgb", str(tmp_path / "cache"), str(tmp_path / "out"))
+        out, checks = pipeline.failure_case(ctx, case, estimators)
+        return {e.name: e for e in out.estimators}, checks, out
     return run
 
 
@@ -89,47 +90,46 @@ def test_sun_case_verdicts_and_a_wrong_estimator_is_biased(run_case):
     """sun_sky, 8² px, 16 spp × 64 seeds: path and mis are fine; cosine misses
     the sun (0.0002 sr) but agrees without it, so "K too small to tell"; the
     same estimator with its pdf 5 % too high is "biased"."""
-    mi.register_integrator("cosine_pdf_x1.05",
-                           lambda props, c=wrong_pdf_class("cosine_hemisphere", 1.05): c(props))
-    rows, checks, out = run_case(QUICK["failures.heavy_tail.sun_sky"],
-                                 ["cosine_hemisphere", "mis", "cosine_pdf_x1.05", "path"])
-    assert rows["path"]["verdict"] == "fine" and rows["mis"]["verdict"] == "fine"
+    wrong = wrong_pdf_class("cosine_hemisphere", 1.05)
+    registry.register(wrong)
+    try:
+        rows, checks, out = run_case(QUICK["failures.heavy_tail.sun_sky"],
+                                     ["cosine_hemisphere", "mis", wrong.plugin_name, "path"])
+    finally:
+        registry.unregister(wrong.plugin_name)
+    assert rows["path"].verdict == "fine" and rows["mis"].verdict == "fine"
     cos = rows["cosine_hemisphere"]
-    assert cos["verdict"] == "K too small to tell"
-    n = cos["numbers"]
-    assert n["sunless_passed"] and n["expected_sun_hits_per_pixel"] < 1
-    assert n["relmse"]["max"] > 100 * n["relmse"]["median"]            # heavy tail
-    assert n["spp_to_match_path"]["spp"] > 16 * 10
-    assert rows["cosine_pdf_x1.05"]["verdict"] == "biased"
-    failed = {c["id"] for c in checks if not c["passed"]}
-    assert failed == {"failures.heavy_tail.sun_sky/cosine_pdf_x1.05/stable"}
-    assert set(cos["images"]) == {"median", "worst"}
+    assert cos.verdict == "K too small to tell"
+    n = cos.numbers
+    assert n.sun.sunless_passed and n.sun.expected_sun_hits_per_pixel < 1
+    assert n.relmse.max > 100 * n.relmse.median            # heavy tail
+    assert n.spp_to_match_path.spp > 16 * 10
+    assert rows[wrong.plugin_name].verdict == "biased"
+    failed = {c.id for c in checks if not c.passed}
+    assert failed == {f"failures.heavy_tail.sun_sky/{wrong.plugin_name}/stable"}
+    assert set(cos.images) == {"median", "worst"}
 
 
 def test_unreachable_case_refuses_and_measures_the_opt_in_bias(run_case):
     rows, checks, _ = run_case(_case("failures.unreachable.point_light", res=4, seeds=8),
                                ["cosine_hemisphere", "emitter_sampling", "path"])
     cos = rows["cosine_hemisphere"]
-    assert cos["refused"] and "'key_light'" in cos["message"]
-    assert cos["verdict"] == "biased (opt-in)"
-    assert cos["numbers"]["missing_fraction"] == pytest.approx(1.0)    # only a point light
-    assert rows["emitter_sampling"]["verdict"] in ("fine", "heavy-tailed")
-    assert all(c["passed"] for c in checks)
-    assert any(c["id"].endswith("cosine_hemisphere/refuses") for c in checks)
+    assert cos.refused and "'key_light'" in cos.message
+    assert cos.verdict == "biased (opt-in)"
+    assert cos.numbers.missing_fraction == pytest.approx(1.0)    # only a point light
+    assert rows["emitter_sampling"].verdict in ("fine", "heavy-tailed")
+    assert all(c.passed for c in checks)
+    assert any(c.id.endswith("cosine_hemisphere/refuses") for c in checks)
 
 
-def test_glossy_sweep_reports_relmse_per_value(llvm, tmp_path):
+def test_glossy_sweep_reports_relmse_per_value(run_case):
     case = _case("failures.glossy.roughness", res=4, seeds=4, sweep=("alpha", (0.5, 0.05)))
-    checks = []
-    out = failures.run_sweep(case, ["cosine_hemisphere", "bsdf_sampling", "path"],
-                             str(tmp_path / "out"), str(tmp_path / "cache"), "llvm_ad_rgb",
-                             profiles.QUICK, checks)
-    rows = {e["name"]: e for e in out["estimators"]}
+    rows, checks, out = run_case(case, ["cosine_hemisphere", "bsdf_sampling", "path"])
     for row in rows.values():
-        assert len(row["relmse"]) == 2 and np.isfinite(row["relmse"]).all()
+        assert len(row.relmse) == 2 and np.isfinite(row.relmse).all()
     # a narrower lobe hurts the cosine estimator more than BSDF sampling
-    assert rows["cosine_hemisphere"]["growth"] > rows["bsdf_sampling"]["growth"]
-    assert all(c["passed"] for c in checks)
+    assert rows["cosine_hemisphere"].growth > rows["bsdf_sampling"].growth
+    assert all(c.passed for c in checks)
 
 
 # ------------------------- No NaN/Inf/negative anywhere -----------------------
@@ -164,12 +164,12 @@ def test_a_rejection_counts_only_if_it_replicates():
     ref = statistics.Moments.of(rng.normal(1.0, 0.05, (64, 4, 4, 3)))
     same = lambda: rng.normal(1.0, 0.05, (64, 4, 4, 3))        # noqa: E731
     shifted = lambda: rng.normal(1.1, 0.05, (64, 4, 4, 3))     # noqa: E731
-    real = failures.replicated_test(shifted(), ref, shifted)
-    assert not real["passed"] and real["replicated"]
+    real = statistics.replicated_compare(shifted(), ref, shifted)
+    assert not real.passed and real.replicated
     # a first batch whose mean at one pixel came out low by chance (as when a
     # tail went unseen) rejects, but fresh renders do not repeat it
     wild = same()
     wild[:, 0, 0] -= 0.05
-    fluke = failures.replicated_test(wild, ref, same)
-    assert not fluke["passed"] and fluke["replicated"] is False
-    assert failures.replicated_test(same(), ref, same)["replicated"] is None
+    fluke = statistics.replicated_compare(wild, ref, same)
+    assert not fluke.passed and fluke.replicated is False
+    assert statistics.replicated_compare(same(), ref, same).replicated is None

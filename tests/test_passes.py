@@ -14,6 +14,7 @@ import mitsuba as mi
 
 from mcillum.integrators import passes
 from mcillum.validation import renders, statistics
+from mcillum.validation.errors import root_cause
 
 from conftest import SCENES
 
@@ -50,7 +51,7 @@ def test_mitsubas_own_split_fails_when_spp_does_not_divide(llvm):
     with pytest.raises(Exception) as info:
         mi.render(scene, integrator=mi.load_dict({"type": "path", "max_depth": 1}),
                   spp=2**31)
-    assert "multiple of samples_per_wavefront" in str(renders.root_cause(info.value))
+    assert "multiple of samples_per_wavefront" in str(root_cause(info.value))
 
 
 def _env_scene(res=2):

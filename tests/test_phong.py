@@ -15,7 +15,7 @@ import mitsuba as mi
 
 from mcillum.validation import renders, statistics
 
-from conftest import ESTIMATORS, ROOT, batch
+from conftest import ALL_ESTIMATORS, ROOT, batch
 
 ALPHA = 0.01
 
@@ -138,7 +138,7 @@ def test_white_furnace_sphere(llvm):
     np.testing.assert_allclose(image, 2.0, rtol=1e-5)
 
 
-@pytest.mark.parametrize("name", ESTIMATORS)
+@pytest.mark.parametrize("name", ALL_ESTIMATORS)
 def test_estimators_agree_with_path_on_phong(llvm, name):
     scene = mi.load_dict({
         "type": "scene",

@@ -1,5 +1,7 @@
 """The HTML report: chart builders on synthetic results (no rendering), a
-self-contained page, and (marked `browser`) the page as Chromium shows it."""
+self-contained page, and (marked `browser`) the page as Chromium shows it.
+The browser's one "external" request goes to a closed loopback port: no test
+sends a packet off this machine."""
 
 import base64
 import io
@@ -11,90 +13,102 @@ import shutil
 import numpy as np
 import pytest
 
-from mcillum.validation import charts, images, report
+from mcillum import files
+from mcillum.validation import charts, report, results
+from mcillum.validation.results import (Check, Convergence, EqualTime, EstimatorInfo,
+                                        EstimatorResult, ReferenceSummary, Results, RunStats,
+                                        SceneResult, Unbiasedness)
 
 ESTIMATORS = ["uniform_hemisphere", "cosine_hemisphere", "path"]
+COLOURS = {"uniform_hemisphere": "#d62728", "cosine_hemisphere": "#1f77b4", "path": "#444444"}
 
 
-def synthetic_results(scenes=("alpha", "beta"), ladder=(4, 16, 64)):
+def synthetic_results(scenes=("alpha", "beta"), ladder=(4, 16, 64)) -> Results:
+    """A run of three estimators on two scenes; uniform_hemisphere fails
+    ``unbiased`` everywhere."""
     rng = np.random.default_rng(0)
-    out = {"schema": "mcillum.results", "version": 1, "created": "2026-11-22T12:00:00",
-           "profile": "quick", "variant": "llvm_ad_rgb", "mitsuba_version": "3.9.1",
-           "drjit_version": "1.5.0", "alpha": 0.01, "wall_seconds": 12.0,
-           "machine": {"platform": "Linux", "cpus": 2, "python": "3.11"},
-           "scenes": [], "checks": []}
+    scene_results, checks = [], []
     for s in scenes:
         ests = []
         for i, name in enumerate(ESTIMATORS):
-            runs = [{"spp": spp, "relmse": 0.5 / (i + 1) / spp, "median_seconds": 1e-4 * spp,
-                     "relmse_per_render": list(0.5 / (i + 1) / spp * rng.lognormal(0, 1, 8)),
-                     "bias": 1e-3, "bias_se": 2e-3, "samples_per_second": 1e6,
-                     "efficiency": (i + 1) * spp / (0.5 * 1e-4 * spp)} for spp in ladder]
-            ests.append({"name": name, "runs": runs,
-                         "unbiasedness": {"passed": name != "uniform_hemisphere",
-                                          "pass_fraction": 0.99},
-                         "convergence": {"slope": -1.0, "low": -1.1, "high": -0.9,
-                                         "exact": False}})
-            out["checks"].append({"id": f"{s}/{name}/unbiased",
-                                  "passed": name != "uniform_hemisphere", "message": "m"})
-        out["scenes"].append({
-            "name": s, "summary": f"{s}: a synthetic scene", "res": 8, "max_depth": 2,
-            "reference": {"spp": 4096, "passes": 64, "seconds": 1.0, "capped": None},
-            "estimators": ests,
-            "equal_time": {"budget_seconds": 1e-3, "predicted_ranking": ESTIMATORS[::-1],
-                           "measured_ranking": ESTIMATORS[::-1], "agrees": True}})
-    return out
+            runs = [RunStats(spp, 8, 0.5 / (i + 1) / spp,
+                             list(0.5 / (i + 1) / spp * rng.lognormal(0, 1, 8)), 0.1, 0.1,
+                             1e-3, 2e-3, 0.01, 0.0, 1e-4 * spp, [1e-4 * spp] * 8, 1e6,
+                             (i + 1) * spp / (0.5 * 1e-4 * spp), 0.0) for spp in ladder]
+            passed = name != "uniform_hemisphere"
+            ests.append(EstimatorResult(
+                name, {"max_depth": 2}, 0.1, runs,
+                Unbiasedness(ladder[-1], passed, 0.99, 0.01, 0.01, 1e-5, [0.5], "m"),
+                Convergence(-1.0, -1.1, -0.9, False, True, True)))
+            checks.append(Check(f"{s}/{name}/unbiased", passed, "m"))
+        scene_results.append(SceneResult(
+            s, f"scenes/{s}.xml", f"{s}: a synthetic scene", 8, 2, list(ladder), 8,
+            ReferenceSummary("path", 4096, 64, 64, 1.0, 0, 64, 1e-6, 1e-6, None, "k"), ests,
+            EqualTime(1e-3, {n: 3 for n in ESTIMATORS}, {n: 0.1 for n in ESTIMATORS},
+                      ESTIMATORS[::-1], {n: 0.1 for n in ESTIMATORS},
+                      {n: 1e-3 for n in ESTIMATORS}, ESTIMATORS[::-1], True)))
+    facts = {n: EstimatorInfo(n.replace("_", " "), COLOURS[n], [], None) for n in ESTIMATORS}
+    return Results("2026-11-22T12:00:00", "quick", "llvm_ad_rgb", "3.9.1", "1.5.0",
+                   {"platform": "Linux", "cpus": 2, "python": "3.11"}, 0.01, 0.1, 12.0,
+                   scene_results, checks, [], facts)
 
 
-def test_colours_are_stable_and_distinct():
-    a = charts.colours(["path", "mine", "cosine_hemisphere", "other"])
-    assert a == charts.colours(["path", "mine", "cosine_hemisphere", "other"])
-    assert len(set(a.values())) == 4 and a["path"] == charts.KNOWN["path"]
+def test_colours_come_from_the_runs_facts():
+    res = synthetic_results()
+    assert charts.palette(res) == COLOURS
+    res.estimator_facts.pop("cosine_hemisphere")            # an integrator without facts
+    colours = charts.palette(res)
+    assert colours["path"] == COLOURS["path"]
+    assert len(set(colours.values())) == 3
 
 
 @pytest.mark.parametrize("builder", [charts.error_vs_time, charts.error_vs_spp,
                                      charts.error_spread])
 def test_scene_charts_label_axes_and_every_estimator(builder):
-    res = synthetic_results()
-    palette = charts.colours(ESTIMATORS)
-    svg = builder(res["scenes"][0], palette)
+    svg = builder(synthetic_results().scenes[0], COLOURS)
     assert svg.startswith("<svg") and "</svg>" in svg
     for name in ESTIMATORS:
         assert name in svg
-    for colour in palette.values():
+    for colour in COLOURS.values():
         assert colour.lower() in svg.lower()
 
 
 def test_axis_labels_carry_units():
-    scene = synthetic_results()["scenes"][0]
-    palette = charts.colours(ESTIMATORS)
-    assert "wall time per render [ms]" in charts.error_vs_time(scene, palette)
-    assert "samples per pixel" in charts.error_vs_spp(scene, palette)
-    assert "slope -1.00" in charts.error_vs_spp(scene, palette).replace("+", "")
-    assert "ideal slope" in charts.error_vs_spp(scene, palette)
+    scene = synthetic_results().scenes[0]
+    assert "wall time per render [ms]" in charts.error_vs_time(scene, COLOURS)
+    assert "samples per pixel" in charts.error_vs_spp(scene, COLOURS)
+    assert "slope -1.00" in charts.error_vs_spp(scene, COLOURS).replace("+", "")
+    assert "ideal slope" in charts.error_vs_spp(scene, COLOURS)
 
 
 def test_efficiency_summary_is_relative_to_path():
-    svg = charts.efficiency_summary(synthetic_results(), charts.colours(ESTIMATORS))
+    svg = charts.efficiency_summary(synthetic_results(), COLOURS)
     assert "relative to Mitsuba" in svg and "path = 1" in svg
     assert "alpha" in svg and "beta" in svg
 
 
+def test_results_round_trip_through_json():
+    """results.json holds everything the report reads: writing and reading
+    it back gives the same records."""
+    res = synthetic_results()
+    assert results.from_json(Results, json.loads(json.dumps(results.to_json(res)))) == res
+
+
 def fake_run_dir(tmp_path, res=None):
-    """A results dir with synthetic results.json and EXR images."""
+    """A results dir with a synthetic results.json and EXR images."""
     res = res or synthetic_results()
     rng = np.random.default_rng(1)
-    for s in res["scenes"]:
-        d = tmp_path / "images" / s["name"]
+    for s in res.scenes:
+        d = tmp_path / "images" / s.name
         d.mkdir(parents=True)
         ref = rng.uniform(0.2, 1.0, (8, 8, 3)).astype(np.float32)
-        images.write_exr(d / "reference.exr", ref)
-        for e in s["estimators"]:
+        files.write_exr(d / "reference.exr", ref)
+        for e in s.estimators:
             noisy = (ref * rng.uniform(0.5, 1.5, ref.shape)).astype(np.float32)
-            images.write_exr(d / f"{e['name']}_spp{e['runs'][-1]['spp']}.exr", noisy)
-            images.write_exr(d / f"{e['name']}_equal_time.exr", noisy,
-                             {"spp": 3, "render_seconds": 0.001})
-    (tmp_path / "results.json").write_text(json.dumps(res))
+            files.write_exr(d / f"{e.name}_spp{e.top.spp}.exr", noisy)
+            files.write_exr(d / f"{e.name}_equal_time.exr", noisy,
+                            {"spp": 3, "render_seconds": 0.001})
+    results.write_json(str(tmp_path / "results.json"), res)
     return tmp_path
 
 
@@ -107,6 +121,7 @@ def test_report_is_self_contained(tmp_path):
 
     page = report.build(str(fake_run_dir(tmp_path)))
     text = open(page, encoding="utf-8").read()
+    assert "cosine hemisphere" in text                      # the estimator table
     assert "default-src 'none'" in text                     # the page may fetch nothing
     assert not re.search(r'(src|href)="(?!data:|#)', text)  # no external resources
     assert "<script" not in text
@@ -194,6 +209,6 @@ def test_browser_check_catches_a_broken_page(tmp_path):
     """The same inspection flags undecodable images and external requests."""
     page = tmp_path / "bad.html"
     page.write_text('<!DOCTYPE html><html><body><img src="data:image/png;base64,AAAA">'
-                    '<img src="http://192.0.2.1/x.png"></body></html>')
+                    '<img src="http://127.0.0.1:9/x.png"></body></html>')
     widths, _, errors, external = inspect_in_chromium(page, tmp_path)
-    assert widths == [0, 0] and errors and external == ["http://192.0.2.1/x.png"]
+    assert widths == [0, 0] and errors and external == ["http://127.0.0.1:9/x.png"]

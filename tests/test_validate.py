@@ -14,7 +14,11 @@ import pytest
 
 import mitsuba as mi
 
-from mcillum.validation import cli, profiles, references, renders, results, scenes
+from mcillum import files
+from mcillum.envmaps import procedural
+from mcillum.validation import cli, profiles, references, renders, results, scenes, stages
+from mcillum.validation.analysis import spp_for_budget
+from mcillum.validation.context import Context, Run
 
 from conftest import wrong_pdf_integrator
 
@@ -45,7 +49,7 @@ def test_correct_estimators_pass_and_outputs_are_complete(llvm, tiny_profile, tm
     assert data["passed"] and len(data["scenes"]) == 2
     jsonschema.validate(data, json.load(open(results.SCHEMA_FILE)))
     for scene in data["scenes"]:
-        assert [e["name"] for e in scene["estimators"]] == list(TINY.estimators)
+        assert [e["name"] for e in scene["estimators"]] == TINY.estimator_names()
         for est in scene["estimators"]:
             assert [r["spp"] for r in est["runs"]] == list(scene["ladder"])
             assert all(r["nonfinite_fraction"] == 0 for r in est["runs"])
@@ -54,7 +58,7 @@ def test_correct_estimators_pass_and_outputs_are_complete(llvm, tiny_profile, tm
         assert (out / "images" / scene["name"] / "reference.exr").is_file()
     rows = (out / "results.csv").read_text().splitlines()
     assert rows[0].startswith("scene,estimator,spp")
-    assert len(rows) == 1 + len(TINY.runs) * len(TINY.estimators) * 4
+    assert len(rows) == 1 + len(TINY.runs) * len(TINY.estimator_names()) * 4
     assert "# mcillum validation" in (out / "summary.md").read_text()
     suite = ET.parse(tmp_path / "junit.xml").getroot()
     assert int(suite.get("tests")) == len(data["checks"]) and suite.get("failures") == "0"
@@ -116,26 +120,31 @@ def test_rerun_resumes_without_rendering(llvm, tiny_profile, tmp_path, monkeypat
 
 # ------------------------------ Reference cache --------------------------------
 
-def furnace(res=4):
-    path = scenes.path("furnace_sphere")
-    defines = renders.resolve_defines(path, res=res)
-    return renders.load_scene(path, res=res), path, defines
+def furnace(tmp_path, res=4, spp_per_pass=16) -> Context:
+    """The loaded furnace scene as a validation context (max_depth 2), with
+    the reference cache in ``tmp_path``."""
+    profile = profiles.Profile("test", (), reference_spp_per_pass=spp_per_pass)
+    plan = profiles.SceneRun("furnace_sphere", res, (1,), 2, max_depth=2)
+    ctx = Context(Run(profile, "llvm_ad_rgb", str(tmp_path), str(tmp_path / "out")), plan,
+                  "furnace_sphere", ["path"])
+    stages.load(ctx)
+    return ctx
 
 
 def test_reference_is_extended_not_rerendered(llvm, tmp_path):
-    scene, path, defines = furnace()
-    params = {"max_depth": 2}
-    a = references.ensure(scene, path, defines, params, "llvm_ad_rgb", str(tmp_path), 1.0, 16)
+    ctx = furnace(tmp_path)
+    a = references.ensure(ctx, 1.0)
     assert a.passes == references.MIN_PASSES and a.meta["rendered_passes"] == a.passes
     target = float(a.variance_of_mean.mean()) / 4          # needs ~4x the passes
-    b = references.ensure(scene, path, defines, params, "llvm_ad_rgb", str(tmp_path), target, 16)
+    b = references.ensure(ctx, target)
     assert b.cached_passes == a.passes and b.passes > a.passes
     assert b.meta["rendered_passes"] == b.passes - a.passes
     assert float(b.variance_of_mean.mean()) <= target
 
 
 def test_reference_key_changes_with_everything_that_changes_the_image(llvm, tmp_path):
-    _, path, defines = furnace()
+    path = scenes.path("furnace_sphere")
+    defines = renders.resolve_defines(path, res=4)
     base = references.cache_key(path, defines, {"max_depth": 2}, "llvm_ad_rgb")
     assert base != references.cache_key(path, {**defines, "res": "5"}, {"max_depth": 2},
                                         "llvm_ad_rgb")
@@ -143,25 +152,23 @@ def test_reference_key_changes_with_everything_that_changes_the_image(llvm, tmp_
     assert base != references.cache_key(path, defines, {"max_depth": 2}, "scalar_rgb")
     # the bytes of referenced files count: an envmap edited in place changes the key
     env = tmp_path / "env.exr"
-    from mcillum.envmaps import procedural
-    procedural.write(env, procedural.constant(1.0))
+    files.write_exr(env, procedural.constant(1.0))
     sky = scenes.path("sky_sphere")
     k1 = references.cache_key(sky, {"envmap": str(env)}, {}, "llvm_ad_rgb")
-    procedural.write(env, procedural.constant(2.0))
+    files.write_exr(env, procedural.constant(2.0))
     assert k1 != references.cache_key(sky, {"envmap": str(env)}, {}, "llvm_ad_rgb")
 
 
 def test_corrupt_cache_entry_is_rendered_anew(llvm, tmp_path):
-    scene, path, defines = furnace()
-    params = {"max_depth": 2}
-    a = references.ensure(scene, path, defines, params, "llvm_ad_rgb", str(tmp_path), 1.0, 16)
+    ctx = furnace(tmp_path)
+    a = references.ensure(ctx, 1.0)
     file = references.cache_path(str(tmp_path), a.key)
     data = bytearray(open(file, "rb").read())
     data[len(data) // 2] ^= 0xFF                            # flip a byte in the pixels
     open(file, "wb").write(bytes(data))
     assert references.load(str(tmp_path), a.key) is None and not os.path.exists(file)
     open(file, "wb").write(b"partial")                      # a truncated file
-    b = references.ensure(scene, path, defines, params, "llvm_ad_rgb", str(tmp_path), 1.0, 16)
+    b = references.ensure(ctx, 1.0)
     assert b.cached_passes == 0 and b.meta["rendered_passes"] == b.passes
     np.testing.assert_allclose(b.mean, a.mean, rtol=1e-6)  # same seeds, same image
 
@@ -194,7 +201,6 @@ def test_cache_survives_a_killed_run(llvm, tmp_path):
 
 
 def test_spp_for_budget_reads_the_measured_ladder():
-    from mcillum.validation.analysis import spp_for_budget
 
     ladder = [4, 16, 64, 256]
     linear = [1e-3 * s for s in ladder]                     # time ∝ spp

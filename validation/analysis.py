@@ -8,6 +8,7 @@ slopes, efficiency and the equal-time comparison.
   −1. An estimator with zero variance at every rung is exact and converges
   trivially (the cosine estimator in a furnace).
 * Efficiency: 1 / (relMSE · seconds) per render (higher is better).
+* Unbiasedness: the batch-means test (statistics.py) of all rungs pooled.
 * Equal time: per estimator, fit log relMSE = a + b·log t over the ladder
   (t = median seconds per render); at a common budget T (the geometric mean
   of the estimators' median times at their middle rung) the fit predicts each
@@ -17,34 +18,15 @@ slopes, efficiency and the equal-time comparison.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 from scipy import stats
 
-from . import metrics
-
-
-@dataclass
-class RunStats:
-    spp: int
-    renders: int
-    relmse: float
-    relmse_per_render: list[float]
-    mse: float
-    mape: float
-    bias: float
-    bias_se: float
-    variance_per_render: float
-    nonfinite_fraction: float
-    median_seconds: float
-    seconds: list[float]
-    samples_per_second: float
-    efficiency: float
-    reference_relmse: float        # what the reference's own noise adds to relmse
+from . import metrics, statistics, tails
+from .results import Convergence, EqualTime, RunStats, Unbiasedness
 
 
 def run_stats(unit, reference) -> RunStats:
+    """Metrics of K renders of one estimator at one spp (see metrics.py)."""
     x = unit.images[..., :3].astype(np.float64)
     r = reference.mean[..., :3]
     per = [metrics.relmse(img, r) for img in x]
@@ -58,24 +40,23 @@ def run_stats(unit, reference) -> RunStats:
         float(np.mean([metrics.mape(i, r) for i in x])), b, se,
         metrics.variance_per_render(x), metrics.nonfinite_fraction(unit.images), med,
         [float(s) for s in unit.seconds], pixels * unit.spp / med,
-        1.0 / (rel * med) if rel > 0 else float("inf"), ref_noise)
+        1.0 / (rel * med) if rel > 0 else float("inf"), ref_noise,
+        tails.firefly_fraction(np.nan_to_num(x), r))
 
 
-@dataclass
-class Slope:
-    slope: float
-    low: float
-    high: float
-    exact: bool = False
-
-    @property
-    def converges(self) -> bool:
-        """Exact, or the error clearly falls with spp (interval below 0)."""
-        return self.exact or self.high < 0
-
-    @property
-    def consistent_with_mc(self) -> bool:
-        return self.exact or self.low <= -1.0 <= self.high
+def unbiasedness(stacks: dict, reference, runs: list[RunStats], alpha: float) -> Unbiasedness:
+    """The batch-means test of all rungs ``stacks`` ({spp: (K, H, W, C)}) pooled,
+    each weighted by its samples, against the reference; not tested (failed)
+    where a render holds NaN/Inf."""
+    top = max(stacks)
+    if not all(r.nonfinite_fraction == 0 for r in runs):
+        return Unbiasedness(top, False, 0.0, 0.0, alpha, 0.0, [],
+                            "not tested: non-finite pixels")
+    pooled = statistics.Moments.pooled({spp: x[..., :3] for spp, x in stacks.items()})
+    c = statistics.compare(pooled, reference.moments(), alpha)
+    return Unbiasedness(top, c.passed, c.pass_fraction, c.min_p, alpha, c.alpha_pixel,
+                        [float(p) for p in c.pooled_p], c.summary(),
+                        int(sum(spp * x.shape[0] for spp, x in stacks.items())))
 
 
 def loglog_fit(x, y, alpha: float = 0.05):
@@ -87,32 +68,20 @@ def loglog_fit(x, y, alpha: float = 0.05):
     return fit.slope, fit.intercept, (fit.slope - half, fit.slope + half)
 
 
-def convergence(runs: list[RunStats], alpha: float = 0.05) -> Slope:
+def convergence(runs: list[RunStats], alpha: float = 0.05) -> Convergence:
+    """Slope of log (relMSE − the reference's share) against log spp, with its
+    (1 − α) interval; it converges when the interval lies below 0, or when
+    the estimator has zero variance at every spp (exact). With fewer than 3
+    usable rungs the interval is unbounded and nothing is claimed."""
     if all(r.variance_per_render <= 1e-12 for r in runs):
-        return Slope(float("nan"), float("nan"), float("nan"), exact=True)
+        return Convergence(float("nan"), float("nan"), float("nan"), True, True, True)
     ok = [(r.spp, r.relmse - r.reference_relmse) for r in runs
           if r.relmse - r.reference_relmse > 0]
     if len(ok) < 3:
-        return Slope(float("nan"), float("-inf"), float("inf"))
+        return Convergence(float("nan"), float("-inf"), float("inf"), False, True, False)
     slope, _, (lo, hi) = loglog_fit(*zip(*ok), alpha)
-    return Slope(float(slope), float(lo), float(hi))
-
-
-@dataclass
-class EqualTime:
-    budget_seconds: float
-    predicted_relmse: dict
-    predicted_ranking: list
-    spp: dict                  # spp each estimator gets in the budget
-    measured_relmse: dict | None = None
-    measured_seconds: dict | None = None
-    measured_ranking: list | None = None
-
-    @property
-    def agrees(self) -> bool | None:
-        if self.measured_ranking is None:
-            return None
-        return self.measured_ranking[0] == self.predicted_ranking[0]
+    return Convergence(float(slope), float(lo), float(hi), False, bool(lo <= -1.0 <= hi),
+                       bool(hi < 0))
 
 
 def equal_time_plan(per_estimator: dict[str, list[RunStats]]) -> EqualTime | None:
@@ -130,7 +99,7 @@ def equal_time_plan(per_estimator: dict[str, list[RunStats]]) -> EqualTime | Non
     budget = float(np.exp(np.mean(np.log(middles))))
     predicted = {n: float(np.exp(b + a * np.log(budget))) for n, (a, b) in fits.items()}
     spp = {n: spp_for_budget(budget, *pts) for n, pts in lines.items()}
-    return EqualTime(budget, predicted, sorted(predicted, key=predicted.get), spp)
+    return EqualTime(budget, spp, predicted, sorted(predicted, key=predicted.get))
 
 
 def spp_for_budget(budget: float, spp, seconds) -> int:
@@ -150,8 +119,10 @@ def spp_for_budget(budget: float, spp, seconds) -> int:
 
 
 def equal_time_measure(plan: EqualTime, units: dict, reference) -> EqualTime:
+    """The measured relMSE, seconds and ranking of renders at the planned spp."""
     stats_ = {n: run_stats(u, reference) for n, u in units.items()}
     plan.measured_relmse = {n: s.relmse for n, s in stats_.items()}
     plan.measured_seconds = {n: s.median_seconds for n, s in stats_.items()}
     plan.measured_ranking = sorted(plan.measured_relmse, key=plan.measured_relmse.get)
+    plan.agrees = plan.measured_ranking[0] == plan.predicted_ranking[0]
     return plan

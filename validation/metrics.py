@@ -6,7 +6,8 @@ linear radiance; means run over all pixels and colour channels.
 * MSE     = mean (x − r)²
 * relMSE  = mean (x − r)² / (r² + ε),  ε = 0.01   (tev's convention; ε keeps
             black pixels from dominating; pbrt's (r + ε)² differs)
-* MAPE    = mean |x − r| / (|r| + ε),  ε = 0.01
+* MAPE    = mean |x − r| / (|r| + ε),  ε = 0.01; per pixel (mean over
+            channels) it is the relative-error map of the report
 * bias    = mean over pixels of (x̄ − r), x̄ the mean of K renders, with its
             standard error from the spread of per-render image means and the
             reference's own standard error
@@ -38,6 +39,12 @@ def relmse(x, r, eps: float = EPSILON) -> float:
 def mape(x, r, eps: float = EPSILON) -> float:
     r = np.asarray(r, np.float64)
     return float(np.mean(np.abs(_finite(x) - r) / (np.abs(r) + eps)))
+
+
+def relative_error_map(x, r, eps: float = EPSILON) -> np.ndarray:
+    """(H, W) per-pixel MAPE: |x − r| / (|r| + ε), mean over RGB."""
+    x, r = _finite(x)[..., :3], np.asarray(r, np.float64)[..., :3]
+    return (np.abs(x - r) / (np.abs(r) + eps)).mean(axis=-1)
 
 
 def nonfinite_fraction(x) -> float:

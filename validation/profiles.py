@@ -11,6 +11,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from mcillum.integrators import registry
+
 
 @dataclass(frozen=True)
 class SceneRun:
@@ -24,7 +26,7 @@ class SceneRun:
 
 @dataclass(frozen=True)
 class FailureCase:
-    """One case of the ``failures`` group (see validation/failures.py)."""
+    """One case of the ``failures`` group (see pipeline.py and checks.py)."""
 
     group: str          # heavy_tail | unreachable | geometry | numerical | glossy
     scene: str
@@ -45,13 +47,18 @@ class FailureCase:
 class Profile:
     name: str
     runs: tuple[SceneRun, ...]
-    estimators: tuple[str, ...] = ("uniform_hemisphere", "cosine_hemisphere", "bsdf_sampling",
-                                   "emitter_sampling", "mis", "path")
     reference_fraction: float = 0.1   # reference SE ≤ this × smallest compared RMSE
     reference_spp_per_pass: int = 64
     reference_max_spp: int = 1 << 16
     reference_max_seconds: float = 60.0
     failures: tuple[FailureCase, ...] = ()
+    #: Integrators compared; None: every registered mcillum estimator, then path.
+    estimators: tuple[str, ...] | None = None
+
+    def estimator_names(self) -> list[str]:
+        if self.estimators is not None:
+            return list(self.estimators)
+        return [*registry.names(), registry.REFERENCE]
 
 
 #: Geometry edge cases (grazing views, back faces, shading normals, thin plates).

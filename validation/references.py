@@ -1,7 +1,8 @@
 """Reference images from Mitsuba's `path`, rendered only as far as needed.
 
-A reference is the mean of independent passes (seeds 1_000_000 + i) of `path`
-at the same max_depth, scene and resolution as the estimators. Its per-pixel
+A reference is the mean of independent passes (seed stream "reference",
+seeds.py) of `path` at the same max_depth, scene and resolution as the
+estimators. Its per-pixel
 variance of the mean comes from the spread of the pass means (batch means).
 :func:`ensure` adds passes until the reference's standard error is at most a
 given fraction of the smallest error it will be compared against (see
@@ -27,12 +28,15 @@ import re
 import time
 from dataclasses import dataclass, field
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 
-from . import images, renders, scenes
+from mcillum import files
 
-#: Seeds of reference passes start here (estimator renders use small seeds).
-SEED_BASE = 1_000_000
+from . import renders, scenes, seeds
+from .statistics import Moments
+
 #: Fewer passes give an unreliable variance estimate (measured: with 8 passes
 #: a silhouette pixel's reference variance was underestimated enough to fail
 #: all three estimators at p = 2e-6).
@@ -71,9 +75,7 @@ class Reference:
         m = self.image_means.mean(axis=1)
         return float(m.std(ddof=1) / np.sqrt(len(m))) if len(m) > 1 else float("nan")
 
-    def moments(self):
-        from .statistics import Moments
-
+    def moments(self) -> Moments:
         return Moments(self.mean, self.pass_variance, self.passes,
                        self.image_means.mean(axis=0), self.image_means.var(axis=0, ddof=1))
 
@@ -109,9 +111,6 @@ def referenced_files(scene_path: str, defines: dict) -> list[str]:
 
 
 def cache_key(scene_path: str, defines: dict, params: dict, variant: str) -> str:
-    import drjit as dr
-    import mitsuba as mi
-
     h = hashlib.sha256()
     for path in referenced_files(scene_path, defines):
         h.update(os.path.basename(path).encode())
@@ -136,34 +135,24 @@ def cache_path(cache_dir: str, key: str) -> str:
 
 
 def save(ref: Reference, cache_dir: str) -> str:
-    import OpenEXR
-
     path = cache_path(cache_dir, ref.key)
     os.makedirs(os.path.dirname(path), exist_ok=True)
     mean, m2 = (np.ascontiguousarray(a, np.float32) for a in (ref.mean, ref.m2))
     meta = {"passes": ref.passes, "spp_per_pass": ref.spp_per_pass,
             "seconds": ref.seconds, "image_means": ref.image_means.tolist(),
             "checksum": _checksum(mean, m2), "format": FORMAT_VERSION, **ref.meta}
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
-              "mcillum.reference": json.dumps(meta)}
-    with images.atomic_path(path) as tmp:
-        OpenEXR.File(header, {"RGB": mean, "m2.RGB": m2}).write(tmp)
-    return path
+    return files.write_exr(path, mean, {"reference": json.dumps(meta)}, {"m2": m2})
 
 
 def load(cache_dir: str, key: str) -> Reference | None:
     """The cached reference, or None if absent or corrupt (then it is deleted)."""
-    import OpenEXR
-
     path = cache_path(cache_dir, key)
     if not os.path.isfile(path):
         return None
     try:
-        f = OpenEXR.File(path)
-        meta = json.loads(f.header()["mcillum.reference"])
-        ch = f.channels()
-        mean = np.asarray(ch["RGB"].pixels, np.float32)
-        m2 = np.asarray(ch["m2.RGB"].pixels, np.float32)
+        mean, header = files.read_exr(path)
+        m2, _ = files.read_exr(path, "m2")
+        meta = json.loads(header["reference"])
         if meta["checksum"] != _checksum(mean, m2) or meta["format"] != FORMAT_VERSION:
             raise ValueError("checksum or format mismatch")
         return Reference(mean.astype(np.float64), m2.astype(np.float64), meta["passes"],
@@ -193,20 +182,24 @@ def target_for(stacks, fraction: float = 0.1) -> float:
     return target_variance(np.sqrt(min(noise)) if noise else 0.0, fraction)
 
 
-def ensure(scene, scene_path: str, defines: dict, params: dict, variant: str,
-           cache_dir: str, target: float, spp_per_pass: int = 64,
-           max_spp: int = 1 << 16, max_seconds: float = 60.0,
-           progress=None) -> Reference:
-    """Load or render the reference until mean(variance_of_mean) ≤ ``target``.
+def ensure(ctx, target: float) -> Reference:
+    """Load or render the reference of context ``ctx`` (its scene, $-parameters,
+    max_depth, variant and cache; the profile's pass size and caps) until
+    mean(variance_of_mean) ≤ ``target``.
 
-    Stops early at ``max_spp`` total samples per pixel or ``max_seconds`` of
-    rendering in this call, and records which cap it hit in ``capped``.
+    Stops early at the profile's ``reference_max_spp`` total samples per pixel
+    or ``reference_max_seconds`` of rendering in this call, and records which
+    cap it hit in ``capped``.
     """
-    key = cache_key(scene_path, defines, params, variant)
+    profile = ctx.run.profile
+    spp_per_pass, max_spp = profile.reference_spp_per_pass, profile.reference_max_spp
+    max_seconds, cache_dir = profile.reference_max_seconds, ctx.run.cache_dir
+    key = cache_key(ctx.info.path, ctx.resolved, ctx.params, ctx.run.variant)
     ref = load(cache_dir, key)
     if ref is not None and ref.spp_per_pass != spp_per_pass:
         ref = None  # a different pass size would mix batch sizes
-    integrator = renders.make_integrator("path", params)
+    integrator = renders.make_integrator("path", ctx.params)
+    stream = seeds.stream("reference")
     start, rendered = time.perf_counter(), 0
 
     def need_more(r):
@@ -220,8 +213,8 @@ def ensure(scene, scene_path: str, defines: dict, params: dict, variant: str,
         if ref is not None and rendered and time.perf_counter() - start > max_seconds:
             ref.capped = f"time cap {max_seconds:g} s"
             break
-        seed = SEED_BASE + (ref.passes if ref else 0)
-        out = renders.render(scene, integrator, spp_per_pass, seed)
+        out = renders.render(ctx.scene, integrator, spp_per_pass,
+                             stream.seed(ref.passes if ref else 0))
         x = out.image[..., :3].astype(np.float64)
         rendered += 1
         if ref is None:
@@ -234,8 +227,7 @@ def ensure(scene, scene_path: str, defines: dict, params: dict, variant: str,
             ref.m2 = ref.m2 + delta * (x - ref.mean)
             ref.passes, ref.seconds = n, ref.seconds + out.seconds
             ref.image_means = np.vstack([ref.image_means, x.mean(axis=(0, 1))])
-        if progress:
-            progress(f"reference pass {ref.passes} ({ref.spp} spp)")
+        ctx.run.step(f"reference pass {ref.passes} ({ref.spp} spp)")
     if rendered:
         save(ref, cache_dir)
     ref.meta = {"target_variance": target, "rendered_passes": rendered}

@@ -1,8 +1,12 @@
-"""Render a scene with one integrator and time it honestly.
+"""Load a scene, make an integrator, render once and time it honestly.
 
 ``mi.render`` returns after launching the kernel; the clock stops only after
 ``dr.sync_thread()``. The first render of a kernel in a process includes its
 compilation (or a load from Dr.Jit's disk cache).
+
+Loading and making integrators raise :class:`~.errors.SceneError` and
+:class:`~.errors.IntegratorError` with messages that say what was wrong and
+what to do (Mitsuba's own say where in its source it noticed).
 """
 
 from __future__ import annotations
@@ -11,12 +15,16 @@ import os
 import time
 from dataclasses import dataclass, field
 
-import numpy as np
-
-from mcillum import integrators
 import drjit as dr
 import mitsuba as mi
-from mcillum.integrators import passes
+import numpy as np
+
+from mcillum import envmaps, files, integrators
+from mcillum.integrators import passes, registry
+
+from . import images, scenes
+from .errors import IntegratorError, SceneError, message, plugin_not_found
+from .errors import unreferenced_properties, unused_defines
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
 
@@ -57,34 +65,68 @@ def parse_assignments(items) -> dict:
     return out
 
 
+# ----------------------------------- Scenes -----------------------------------
+
 def resolve_defines(path: str | os.PathLike, envmap_policy: str = "clamp", **defines) -> dict:
     """The ``$``-parameters a scene will be loaded with, as strings.
 
     An ``envmap`` parameter (given, or the scene's default) may be a map name
     (``envmaps.entries()``) or a file; either way it becomes the path of a
-    checked file that obeys ``envmap_policy`` (see :mod:`envmaps.safety`).
+    checked file that obeys ``envmap_policy`` (see :mod:`mcillum.envmaps.safety`).
+    A relative file is taken from the scene's directory.
     """
-    from mcillum import envmaps
-
-    from .scenes import defaults
-
     path = os.fspath(path)
-    default = defaults(path).get("envmap")
+    default = scenes.defaults(path).get("envmap")
     if "envmap" in defines or default is not None:
         value = str(defines.get("envmap", default))
-        if value not in envmaps.entries() and not os.path.isabs(value):
+        relative = value not in envmaps.entries() and not os.path.isabs(value)
+        if relative:
             value = os.path.join(os.path.dirname(os.path.abspath(path)), value)
-        defines["envmap"] = envmaps.resolve(value, envmap_policy)[0]
+        try:
+            defines["envmap"] = envmaps.resolve(value, envmap_policy)[0]
+        except envmaps.EnvmapError as err:
+            if relative and "not found" in str(err):
+                raise envmaps.EnvmapError(
+                    f"{err} (a relative path is taken from the scene's directory, "
+                    f"{os.path.dirname(os.path.abspath(path))})") from None
+            raise
     return {k: _xml_value(v) for k, v in defines.items()}
 
 
 def load_scene(path: str | os.PathLike, envmap_policy: str = "clamp", **defines) -> mi.Scene:
     """Load a Mitsuba XML scene with ``$``-parameters ``defines`` (see
-    :func:`resolve_defines` for the ``envmap`` parameter)."""
+    :func:`resolve_defines` for ``envmap``). Raises :class:`SceneError` (or
+    ``EnvmapError``) with a message naming the file, and the line where
+    Mitsuba gives one, and what to do."""
     path = os.fspath(path)
+    shown = " ".join(f"-D {k}={v}" for k, v in defines.items())
+    if os.path.isdir(path):
+        raise SceneError(f"cannot load scene {path}: it is a directory; give an XML file")
     if not os.path.isfile(path):
-        raise FileNotFoundError(f"scene file not found: {path}")
-    return load_resolved(path, resolve_defines(path, envmap_policy, **defines))
+        raise SceneError(f"scene file not found: {path}")
+    try:
+        scene = load_resolved(path, resolve_defines(path, envmap_policy, **defines))
+    except envmaps.EnvmapError:
+        raise
+    except UnicodeDecodeError:
+        raise SceneError(f"cannot load scene {path}: not a UTF-8 text (XML) file") from None
+    except Exception as err:  # Mitsuba's parser and plugins
+        text = message(err)
+        unused = unused_defines(text)
+        if unused:
+            declared = ", ".join(scenes.defaults(path)) or "none declared"
+            raise SceneError(f"scene {path} has no $-parameter {', '.join(unused)} (given "
+                             f"with -D); its parameters: {declared}") from None
+        hint = f" (check the values of {shown})" if shown else ""
+        if "Parsing of XML file" in text:
+            hint = ": fix the XML at that line"
+        raise SceneError(f"cannot load scene {path}: {text}{hint}") from None
+    for sensor in scene.sensors():
+        w, h = (int(x) for x in sensor.film().crop_size())
+        if w < 1 or h < 1:
+            raise SceneError(f"scene {path} has a {w}x{h} film: nothing to render; give it "
+                             f"a positive size" + (f" (got {shown})" if shown else ""))
+    return scene
 
 
 def load_resolved(path: str | os.PathLike, resolved: dict) -> mi.Scene:
@@ -97,10 +139,44 @@ def _xml_value(value) -> str:
     return str(value).lower() if isinstance(value, bool) else str(value)
 
 
-def make_integrator(name: str, params: dict | None = None) -> mi.Integrator:
-    """Instantiate integrator plugin ``name`` with properties ``params``."""
-    return mi.load_dict({"type": name, **(params or {})})
+# --------------------------------- Integrators ---------------------------------
 
+def _known() -> str:
+    return (f"mcillum's integrators are {', '.join(registry.names())}; any Mitsuba "
+            "integrator also works (e.g. path, volpath, direct)")
+
+
+def make_integrator(name: str, params: dict | None = None) -> mi.Integrator:
+    """Integrator plugin ``name`` with properties ``params``; raises
+    :class:`IntegratorError` for an unknown name, a plugin that is not an
+    integrator, or a property it refuses."""
+    params = params or {}
+    shown = " ".join(f"-p {k}={v}" for k, v in params.items())
+    try:
+        integrator = mi.load_dict({"type": name, **params})
+    except Exception as err:  # noqa: BLE001  (Mitsuba's loader raises plain errors)
+        text = message(err, context=False)
+        if plugin_not_found(text):
+            raise IntegratorError(f"unknown integrator '{name}': {_known()}") from None
+        unknown = unreferenced_properties(text)
+        if unknown:
+            raise IntegratorError(
+                f"integrator '{name}' has no parameter {', '.join(unknown)}: mcillum's "
+                "integrators take max_depth, rr_depth, hide_emitters and "
+                "allow_unreachable; Mitsuba's own are listed in its documentation "
+                "(Plugin reference > Integrators)") from None
+        raise IntegratorError(f"integrator '{name}' rejected {shown or 'its defaults'}: "
+                              f"{text}") from None
+    if not isinstance(integrator, mi.Integrator):
+        kind = next((k for c, k in ((mi.BSDF, "a BSDF"), (mi.Emitter, "an emitter"),
+                                    (mi.Shape, "a shape"), (mi.Texture, "a texture"),
+                                    (mi.Sensor, "a sensor")) if isinstance(integrator, c)),
+                    "another kind of")
+        raise IntegratorError(f"'{name}' is {kind} plugin, not an integrator: {_known()}")
+    return integrator
+
+
+# ----------------------------------- Render ------------------------------------
 
 @dataclass
 class Render:
@@ -117,9 +193,9 @@ def render(scene: mi.Scene, integrator: mi.Integrator, spp: int, seed: int = 0) 
     """Render ``scene`` with ``integrator`` at ``spp`` samples/pixel and ``seed``."""
     if spp < 1:
         raise ValueError(f"spp must be >= 1, got {spp}")
-    # mcillum plugins split over-long wavefronts themselves; Mitsuba's own
+    # mcillum's estimators split over-long wavefronts themselves; Mitsuba's own
     # integrators fail when spp does not divide into their pass count.
-    plan = [spp] if hasattr(integrator, "unreachable") else passes.plan_passes(
+    plan = [spp] if registry.is_estimator(integrator) else passes.plan_passes(
         passes.film_lanes(scene.sensors()[0].film()), spp)
     start = time.perf_counter()
     image = passes.render_in_passes(
@@ -130,8 +206,32 @@ def render(scene: mi.Scene, integrator: mi.Integrator, spp: int, seed: int = 0) 
                   {"passes": len(plan)} if len(plan) > 1 else {})
 
 
-def root_cause(exc: BaseException) -> BaseException:
-    """The innermost exception of a chain (``mi.render`` wraps plugin errors)."""
-    while exc.__cause__ is not None:
-        exc = exc.__cause__
-    return exc
+def provenance(scene_path: str, name: str, integrator, params: dict, defines: dict,
+               result: Render, variant: str) -> dict:
+    """What an EXR written by ``mcillum render`` records in its header; a
+    render with ``allow_unreachable`` says it is biased (``biased``)."""
+    meta = {
+        "scene": os.path.abspath(scene_path),
+        "integrator": name,
+        "params": " ".join(f"{k}={v}" for k, v in sorted(params.items())),
+        "defines": " ".join(f"{k}={v}" for k, v in sorted(defines.items())),
+        "spp": result.spp,
+        "seed": result.seed,
+        "variant": variant,
+        "mitsuba_version": mi.__version__,
+        "drjit_version": dr.__version__,
+        "render_seconds": result.seconds,
+    }
+    missing = getattr(integrator, "unreachable", [])
+    if missing:
+        meta["biased"] = "; ".join(p.what for p in missing)
+    return meta
+
+
+def save(path: str, result: Render, meta: dict, exposure: float = 0.0) -> str:
+    """Write the render as EXR at ``path`` and a tone-mapped PNG beside it;
+    returns the PNG's path."""
+    png = os.path.splitext(path)[0] + ".png"
+    files.write_exr(path, result.image, meta)
+    images.write_png(png, result.image, exposure)
+    return png

@@ -1,22 +1,37 @@
-"""The run's results as files: results.json (versioned schema), results.csv,
-summary.md and an optional JUnit XML, one test case per check.
+"""What a validation run found, as dataclasses, and the files that hold it.
 
-Schema: ``validation/results.schema.json`` (JSON Schema 2020-12), documented
-in the README. ``version`` changes whenever a field changes meaning.
+The pipeline builds these records; charts and the report read them. Only this
+module turns them into files and back:
+
+* ``results.json`` — :func:`to_json` / :func:`load`; schema
+  ``validation/results.schema.json`` (JSON Schema 2020-12), documented in the
+  README. ``version`` (major) changes when a field changes meaning, and
+  readers refuse other majors; ``minor_version`` counts fields added since.
+* ``results.csv`` — one row per scene × estimator × spp;
+* ``summary.md`` — for CI logs and pull requests;
+* JUnit XML — one test case per check.
 """
 
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import json
 import os
+import types
+import typing
+from dataclasses import dataclass, field
 from xml.sax.saxutils import escape, quoteattr
 
-from . import images, metrics
+from mcillum import files
+
+from . import metrics
 
 SCHEMA = "mcillum.results"
 VERSION = 1
+#: 1: ``minor_version``, ``estimator_facts``, ``firefly_fraction`` per run.
+MINOR_VERSION = 1
 SCHEMA_FILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results.schema.json")
 
 DEFINITIONS = {
@@ -26,6 +41,7 @@ DEFINITIONS = {
     "bias": "image mean of (mean of K renders - reference), with standard error",
     "variance_per_render": "mean over pixels of the sample variance over K renders",
     "nonfinite_fraction": "share of NaN/Inf values in the K renders (must be 0)",
+    "firefly_fraction": "share of pixels of all renders brighter than 10x the reference there",
     "efficiency": "1 / (relmse * median seconds per render)",
     "unbiasedness": "per-pixel-channel Welch t-tests (Sidak) + pooled per-channel tests "
                     "(Bonferroni), family-wise alpha, variances from each side's own renders",
@@ -33,15 +49,407 @@ DEFINITIONS = {
 }
 
 
-def write_text(path: str, text: str) -> None:
-    """Write ``text`` to ``path`` atomically (UTF-8)."""
-    with images.atomic_path(path) as tmp:
-        with open(tmp, "w", encoding="utf-8") as f:
-            f.write(text)
+def _optional(default=None):
+    """A field left out of the JSON while it is None."""
+    return field(default=default, metadata={"omit_none": True})
 
 
-def write_json(path: str, results: dict) -> None:
-    write_text(path, json.dumps(results, indent=2, allow_nan=False, default=float) + "\n")
+def _flat(default=None):
+    """A record whose fields are written into its parent's JSON object."""
+    return field(default=default, metadata={"flatten": True})
+
+
+# -------------------------------- Checks --------------------------------------
+
+@dataclass
+class Check:
+    """One verdict of the run: ``id`` is ``<scene or case>/<estimator>/<what>``."""
+
+    id: str
+    passed: bool
+    message: str
+
+
+# ---------------------------- Scene comparisons -------------------------------
+
+@dataclass
+class RunStats:
+    """K renders of one estimator at one spp against the reference."""
+
+    spp: int
+    renders: int
+    relmse: float
+    relmse_per_render: list[float]
+    mse: float
+    mape: float
+    bias: float
+    bias_se: float
+    variance_per_render: float
+    nonfinite_fraction: float
+    median_seconds: float
+    seconds: list[float]
+    samples_per_second: float
+    efficiency: float
+    reference_relmse: float        # what the reference's own noise adds to relmse
+    firefly_fraction: float = 0.0
+
+
+@dataclass
+class Unbiasedness:
+    """The batch-means test of all rungs pooled against the reference."""
+
+    spp: int
+    passed: bool
+    pass_fraction: float
+    min_p: float
+    alpha: float
+    alpha_pixel: float
+    pooled_p: list[float]
+    summary: str
+    samples_per_pixel: int | None = _optional()
+
+
+@dataclass
+class Convergence:
+    """Slope of log relMSE against log spp with its 95 % interval."""
+
+    slope: float
+    low: float
+    high: float
+    exact: bool
+    consistent_with_mc: bool
+    passed: bool
+
+
+@dataclass
+class EstimatorResult:
+    name: str
+    params: dict
+    compile_seconds: float
+    runs: list[RunStats]
+    unbiasedness: Unbiasedness
+    convergence: Convergence
+
+    @property
+    def top(self) -> RunStats:
+        """The run at the highest spp."""
+        return self.runs[-1]
+
+
+@dataclass
+class ReferenceSummary:
+    integrator: str
+    spp: int
+    passes: int
+    spp_per_pass: int
+    seconds: float
+    cached_passes: int
+    rendered_passes: int
+    target_variance: float
+    achieved_variance: float
+    capped: str | None
+    key: str
+
+
+@dataclass
+class EqualTime:
+    """A common time budget, the ranking the fitted curves predict there, and
+    the ranking renders at that budget measured."""
+
+    budget_seconds: float
+    spp: dict[str, int]
+    predicted_relmse: dict[str, float]
+    predicted_ranking: list[str]
+    measured_relmse: dict[str, float] | None = None
+    measured_seconds: dict[str, float] | None = None
+    measured_ranking: list[str] | None = None
+    agrees: bool | None = None
+
+
+@dataclass
+class SceneResult:
+    name: str
+    path: str
+    summary: str
+    res: int
+    max_depth: int
+    ladder: list[int]
+    renders: int
+    reference: ReferenceSummary
+    estimators: list[EstimatorResult]
+    equal_time: EqualTime | None
+
+
+# ------------------------------ Failure cases ---------------------------------
+
+@dataclass
+class Percentiles:
+    mean: float
+    median: float
+    p90: float
+    p99: float
+    max: float
+
+
+@dataclass
+class SppToMatch:
+    spp: float
+    low: float
+    high: float
+    level: float
+
+
+@dataclass
+class BatchTest:
+    """The batch-means test of K renders and, where it rejected, its replication
+    in K fresh renders (``replicated`` None: nothing needed replicating)."""
+
+    passed: bool
+    pass_fraction: float
+    min_p: float
+    pooled_p: list[float]
+    alpha_pixel: float
+    test: str
+    rejected_pixels: int = 0
+    replicated_pixels: int = 0
+    replicated: bool | None = None
+    replication_test: str | None = _optional()
+
+
+@dataclass
+class SunSplit:
+    """The same estimator re-tested on the map without its sun."""
+
+    sun: dict                      # envmaps.sun.split facts: solid_angle, texels, …
+    sunless_passed: bool
+    sunless_test: str
+    sunless_reference_mean: float
+    expected_sun_hits_per_pixel: float | None
+    sun_share_of_image: float
+
+
+@dataclass
+class TailNumbers:
+    """How one estimator's error spreads over K seeds (see tails.py)."""
+
+    relmse: Percentiles
+    firefly_fraction: float
+    samples_per_pixel: int
+    seeds: int
+    seconds_median: float
+    image_mean_ratio: float | None
+    spp_to_match_path: SppToMatch | None
+    nonfinite_values: int = 0
+    negative_values: int = 0
+    missing_fraction: float | None = _optional()
+    tail_ratio: float | None = _optional()
+    test: BatchTest | None = _flat()
+    sun: SunSplit | None = _flat()
+
+
+@dataclass
+class CaseRow:
+    """One estimator in a failure case."""
+
+    name: str
+    refused: bool
+    verdict: str = ""
+    message: str | None = _optional()
+    numbers: TailNumbers | None = _optional()
+    images: dict[str, str] = field(default_factory=dict)
+
+
+@dataclass
+class SweepRow:
+    """One estimator along a swept parameter."""
+
+    name: str
+    relmse: list[float]
+    seconds: list[float]
+    growth: float | None
+    nonfinite_values: int
+    images: dict[str, str]
+    verdict: str
+
+
+@dataclass
+class CaseReference:
+    spp: int
+    capped: str | None
+
+
+@dataclass
+class Sweep:
+    param: str
+    values: list
+
+
+@dataclass
+class CaseResult:
+    id: str
+    group: str
+    label: str
+    scene: str
+    defines: dict
+    res: int
+    spp: int
+    seeds: int
+    max_depth: int
+    summary: str
+    estimators: list  # list[CaseRow], or list[SweepRow] for a sweep
+    reference: CaseReference | None = _optional()
+    sweep: Sweep | None = _optional()
+
+
+# -------------------------------- The run -------------------------------------
+
+@dataclass
+class EstimatorInfo:
+    """The registry's facts of one estimator, as the run saw them."""
+
+    display_name: str
+    colour: str
+    unreachable: list[str]
+    max_direction_pdf: float | None
+
+
+@dataclass
+class Results:
+    created: str
+    profile: str
+    variant: str
+    mitsuba_version: str
+    drjit_version: str
+    machine: dict
+    alpha: float
+    reference_fraction: float
+    wall_seconds: float
+    scenes: list[SceneResult]
+    checks: list[Check]
+    failures: list[CaseResult] = field(default_factory=list)
+    estimator_facts: dict[str, EstimatorInfo] = field(default_factory=dict)
+    definitions: dict[str, str] = field(default_factory=lambda: dict(DEFINITIONS))
+    schema: str = SCHEMA
+    version: int = VERSION
+    minor_version: int = MINOR_VERSION
+
+    @property
+    def passed(self) -> bool:
+        return all(c.passed for c in self.checks)
+
+    @property
+    def failed(self) -> list[Check]:
+        return [c for c in self.checks if not c.passed]
+
+
+# ------------------------------ JSON, both ways --------------------------------
+
+def to_json(record) -> dict:
+    """A record as the JSON object results.json holds (see the schema)."""
+    out = _encode(record)
+    if isinstance(record, Results):
+        out["passed"] = record.passed
+    return out
+
+
+def _encode(value):
+    if dataclasses.is_dataclass(value):
+        out = {}
+        for f in dataclasses.fields(value):
+            item = getattr(value, f.name)
+            if item is None and f.metadata.get("omit_none"):
+                continue
+            if f.metadata.get("flatten"):
+                if item is not None:
+                    out.update(_encode(item))
+                continue
+            out[f.name] = _encode(item)
+        return out
+    if isinstance(value, dict):
+        return {str(k): _encode(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_encode(v) for v in value]
+    if hasattr(value, "item"):              # numpy scalars
+        return value.item()
+    return value
+
+
+def _decode(hint, data):
+    """``data`` (from JSON) as the type ``hint`` describes."""
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(hint) if a is not type(None)]
+        return None if data is None else _decode(args[0], data)
+    if dataclasses.is_dataclass(hint):
+        return from_json(hint, data)
+    if origin is list:
+        (item,) = typing.get_args(hint) or (typing.Any,)
+        return [_decode(item, v) for v in data]
+    if origin is dict:
+        _, item = typing.get_args(hint) or (str, typing.Any)
+        return {k: _decode(item, v) for k, v in data.items()}
+    return data
+
+
+def from_json(cls, data: dict):
+    """A record of dataclass ``cls`` from its JSON object (inverse of
+    :func:`to_json`); unknown keys are ignored, missing ones raise KeyError."""
+    hints = typing.get_type_hints(cls)
+    kwargs = {}
+    for f in dataclasses.fields(cls):
+        hint = hints[f.name]
+        if f.metadata.get("flatten"):
+            inner = [a for a in typing.get_args(hint) if a is not type(None)][0]
+            required = [g.name for g in dataclasses.fields(inner)
+                        if g.default is dataclasses.MISSING
+                        and g.default_factory is dataclasses.MISSING]
+            kwargs[f.name] = from_json(inner, data) if all(k in data for k in required) \
+                else None
+        elif f.name in data:
+            kwargs[f.name] = _decode(hint, data[f.name])
+        elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+            raise KeyError(f.name)
+    record = cls(**kwargs)
+    if cls is CaseResult:                   # rows of a sweep or of a case
+        row = SweepRow if record.sweep is not None else CaseRow
+        record.estimators = [from_json(row, r) for r in data["estimators"]]
+    return record
+
+
+class ResultsError(ValueError):
+    """results.json is missing, unreadable, of another version, or incomplete."""
+
+
+def load(run_dir: str) -> Results:
+    """The :class:`Results` of ``run_dir/results.json``; :class:`ResultsError`
+    says what is wrong with it and what to do."""
+    path = os.path.join(run_dir, "results.json")
+    again = f"run `mcillum validate --out {run_dir}` again"
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"no results.json in {run_dir}: run `mcillum validate "
+                                f"--out {run_dir}` first")
+    try:
+        with open(path, encoding="utf-8") as f:
+            data = json.load(f)
+    except (ValueError, UnicodeDecodeError) as err:
+        raise ResultsError(f"{path} is not valid JSON ({err}): {again}") from None
+    if not isinstance(data, dict) or data.get("schema") != SCHEMA:
+        raise ResultsError(f"{path} is not an mcillum results file (no \"schema\": "
+                           f"\"{SCHEMA}\")")
+    if data.get("version") != VERSION:
+        raise ResultsError(f"{path} has results version {data.get('version')!r}; this "
+                           f"mcillum reads version {VERSION}: {again}")
+    try:
+        return from_json(Results, data)
+    except KeyError as err:
+        raise ResultsError(f"{path} lacks the field {err}: {again}") from None
+
+
+# ---------------------------------- Files -------------------------------------
+
+def write_json(path: str, results: Results) -> None:
+    files.write_text(path, json.dumps(to_json(results), indent=2, allow_nan=False,
+                                      default=float) + "\n")
 
 
 CSV_FIELDS = ["scene", "estimator", "spp", "renders", "relmse", "mse", "mape", "bias",
@@ -49,92 +457,87 @@ CSV_FIELDS = ["scene", "estimator", "spp", "renders", "relmse", "mse", "mape", "
               "samples_per_second", "efficiency"]
 
 
-def write_csv(path: str, results: dict) -> None:
+def write_csv(path: str, results: Results) -> None:
     buf = io.StringIO()
     w = csv.DictWriter(buf, CSV_FIELDS)
     w.writeheader()
-    for scene in results["scenes"]:
-        for est in scene["estimators"]:
-            for run in est["runs"]:
-                w.writerow({"scene": scene["name"], "estimator": est["name"],
-                            **{k: run[k] for k in CSV_FIELDS[2:]}})
-    write_text(path, buf.getvalue())
+    for scene in results.scenes:
+        for est in scene.estimators:
+            for run in est.runs:
+                w.writerow({"scene": scene.name, "estimator": est.name,
+                            **{k: getattr(run, k) for k in CSV_FIELDS[2:]}})
+    files.write_text(path, buf.getvalue())
 
 
-def summary(results: dict) -> str:
-    checks = results["checks"]
-    failed = [c for c in checks if not c["passed"]]
-    lines = [f"# mcillum validation — profile {results['profile']}",
+def summary(results: Results) -> str:
+    """summary.md: the verdict, then a table per scene and the failures group."""
+    checks, failed = results.checks, results.failed
+    lines = [f"# mcillum validation — profile {results.profile}",
              "",
              f"{len(checks) - len(failed)} of {len(checks)} checks passed; "
-             f"{results['variant']}, mitsuba {results['mitsuba_version']}, "
-             f"drjit {results['drjit_version']}, {results['wall_seconds']:.0f} s.", ""]
-    for scene in results["scenes"]:
-        ref = scene["reference"]
-        capped = f", capped: {ref['capped']}" if ref["capped"] else ""
-        lines += [f"## {scene['name']} ({scene['res']}², max_depth {scene['max_depth']})",
-                  "", f"Reference: `path`, {ref['spp']} spp in {ref['passes']} passes"
-                  f"{capped}.", "",
+             f"{results.variant}, mitsuba {results.mitsuba_version}, "
+             f"drjit {results.drjit_version}, {results.wall_seconds:.0f} s.", ""]
+    for scene in results.scenes:
+        ref = scene.reference
+        capped = f", capped: {ref.capped}" if ref.capped else ""
+        lines += [f"## {scene.name} ({scene.res}², max_depth {scene.max_depth})",
+                  "", f"Reference: `path`, {ref.spp} spp in {ref.passes} passes{capped}.",
+                  "",
                   "| estimator | relMSE @ top spp | bias ± se | unbiased (pass %) | slope [95% CI] "
                   "| samples/s | efficiency |",
                   "|---|---|---|---|---|---|---|"]
-        for est in scene["estimators"]:
-            top = est["runs"][-1]
-            u, c = est["unbiasedness"], est["convergence"]
+        for est in scene.estimators:
+            top, u, c = est.top, est.unbiasedness, est.convergence
             lines.append(
-                f"| {est['name']} | {top['relmse']:.3g} | {top['bias']:+.2e} ± "
-                f"{top['bias_se']:.1e} | {'yes' if u['passed'] else '**NO**'} "
-                f"({100 * u['pass_fraction']:.1f}) | "
-                + ("exact" if c["exact"] else
-                   f"{c['slope']:+.2f} [{c['low']:+.2f}, {c['high']:+.2f}]")
-                + f" | {top['samples_per_second'] / 1e6:.2f} M | "
-                  f"{top['efficiency']:.3g} |")
-        et = scene.get("equal_time")
+                f"| {est.name} | {top.relmse:.3g} | {top.bias:+.2e} ± {top.bias_se:.1e} | "
+                f"{'yes' if u.passed else '**NO**'} ({100 * u.pass_fraction:.1f}) | "
+                + ("exact" if c.exact else f"{c.slope:+.2f} [{c.low:+.2f}, {c.high:+.2f}]")
+                + f" | {top.samples_per_second / 1e6:.2f} M | {top.efficiency:.3g} |")
+        et = scene.equal_time
         if et:
-            measured = ", ".join(et["measured_ranking"]) if et["measured_ranking"] else "—"
-            lines += ["", f"Equal time ({et['budget_seconds'] * 1e3:.1f} ms per render): "
-                          f"predicted best first: {', '.join(et['predicted_ranking'])}; "
+            measured = ", ".join(et.measured_ranking) if et.measured_ranking else "—"
+            lines += ["", f"Equal time ({et.budget_seconds * 1e3:.1f} ms per render): "
+                          f"predicted best first: {', '.join(et.predicted_ranking)}; "
                           f"measured: {measured}."]
         lines.append("")
-    if results.get("failures"):
+    if results.failures:
         lines += ["## Where methods fail", "",
                   "| case | estimator | verdict | relMSE median / p99 / max | fireflies "
                   "| spp to match path |", "|---|---|---|---|---|---|"]
-        for case in results["failures"]:
-            for est in case["estimators"]:
-                n = est.get("numbers") or {}
-                if case.get("sweep"):
-                    cells = (f"relMSE {', '.join(f'{r:.3g}' for r in est['relmse'])} over "
-                             f"{case['sweep']['param']} = "
-                             f"{', '.join(str(v) for v in case['sweep']['values'])} | | ")
-                elif n:
-                    r, m = n["relmse"], n["spp_to_match_path"]
-                    cells = (f"{r['median']:.3g} / {r['p99']:.3g} / {r['max']:.3g} | "
-                             f"{100 * n['firefly_fraction']:.3f} % | "
-                             + (f"{m['spp']:.3g} [{m['low']:.3g}, {m['high']:.3g}]" if m
-                                else "never (biased)"))
-                else:
-                    cells = " | | "
-                lines.append(f"| {case['label']} | {est['name']} | {est['verdict']} | {cells} |")
+        for case in results.failures:
+            for est in case.estimators:
+                lines.append(f"| {case.label} | {est.name} | {est.verdict} | "
+                             f"{_failure_cells(case, est)} |")
         lines.append("")
     if failed:
-        lines += ["## Failed checks", ""] + [f"- `{c['id']}`: {c['message']}" for c in failed]
+        lines += ["## Failed checks", ""] + [f"- `{c.id}`: {c.message}" for c in failed]
     return "\n".join(lines) + "\n"
 
 
-def write_junit(path: str, results: dict) -> None:
-    checks = results["checks"]
-    failures = sum(not c["passed"] for c in checks)
+def _failure_cells(case: CaseResult, est) -> str:
+    if case.sweep is not None:
+        return (f"relMSE {', '.join(f'{r:.3g}' for r in est.relmse)} over {case.sweep.param} = "
+                f"{', '.join(str(v) for v in case.sweep.values)} | | ")
+    n = est.numbers
+    if n is None:
+        return " | | "
+    r, m = n.relmse, n.spp_to_match_path
+    return (f"{r.median:.3g} / {r.p99:.3g} / {r.max:.3g} | {100 * n.firefly_fraction:.3f} % | "
+            + (f"{m.spp:.3g} [{m.low:.3g}, {m.high:.3g}]" if m else "never (biased)"))
+
+
+def write_junit(path: str, results: Results) -> None:
+    checks = results.checks
     out = ['<?xml version="1.0" encoding="UTF-8"?>',
-           f'<testsuite name="mcillum.validate.{results["profile"]}" tests="{len(checks)}" '
-           f'failures="{failures}" time="{results["wall_seconds"]:.3f}">']
+           f'<testsuite name="mcillum.validate.{results.profile}" tests="{len(checks)}" '
+           f'failures="{len(results.failed)}" time="{results.wall_seconds:.3f}">']
     for c in checks:
-        scene, _, rest = c["id"].partition("/")
+        scene, _, rest = c.id.partition("/")
         out.append(f'  <testcase classname={quoteattr("mcillum." + scene)} '
                    f'name={quoteattr(rest)}>')
-        if not c["passed"]:
-            out.append(f'    <failure message={quoteattr(c["message"])}>'
-                       f'{escape(c["message"])}</failure>')
+        if not c.passed:
+            out.append(f'    <failure message={quoteattr(c.message)}>'
+                       f'{escape(c.message)}</failure>')
         out.append("  </testcase>")
     out.append("</testsuite>")
-    write_text(path, "\n".join(out) + "\n")
+    files.write_text(path, "\n".join(out) + "\n")

@@ -1,9 +1,12 @@
 """The scene set: every XML file in scenes/ and what its header declares.
 
-Each scene opens with a comment that says what it tests and lists, on lines
-``Estimators: ...`` and (optionally) ``Refused by: ...``, the integrators it is
-meant for and those that must refuse it. This module reads those lines so that
-tests and sweeps need no second list.
+Each scene opens with a comment that says what it tests (first paragraph:
+``<name>: <summary>``) and, on a line ``Contains: ...``, the kinds of content
+(:data:`~mcillum.integrators.scene_checks.KINDS`) that a continuous hemisphere
+pdf cannot reach: delta lights, delta lobes, transmission. Which estimators
+render a scene follows from that line and each estimator's registry facts
+(``registry.facts(name).renders(info.contains)``); those that cannot must
+refuse it. A scene without the line holds none of them.
 """
 
 from __future__ import annotations
@@ -12,6 +15,9 @@ import os
 import re
 from dataclasses import dataclass, field
 
+from mcillum.integrators.scene_checks import KINDS
+
+#: scenes/ beside the package's subfolders (in a checkout and when installed).
 SCENES_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
                           "scenes")
 
@@ -21,8 +27,7 @@ class SceneInfo:
     name: str
     path: str
     summary: str                                  # first paragraph of the comment
-    estimators: tuple[str, ...]
-    refused_by: tuple[str, ...] = field(default=())
+    contains: tuple[str, ...] = field(default=())
 
 
 def _header(path: str) -> str:
@@ -43,9 +48,14 @@ def defaults(path: str) -> dict[str, str]:
         return dict(_DEFAULT.findall(f.read()))
 
 
-def _listed(header: str, label: str) -> tuple[str, ...]:
-    m = re.search(rf"^\s*{label}:\s*(.+)$", header, re.M)
-    return tuple(m.group(1).split()) if m else ()
+def _contains(header: str, path: str) -> tuple[str, ...]:
+    m = re.search(r"^\s*Contains:\s*(.+)$", header, re.M)
+    kinds = tuple(m.group(1).split()) if m else ()
+    unknown = [k for k in kinds if k not in KINDS]
+    if unknown:
+        raise ValueError(f"{path}: 'Contains:' names {', '.join(unknown)}; the kinds are "
+                         f"{', '.join(KINDS)}")
+    return kinds
 
 
 def index(directory: str = SCENES_DIR) -> dict[str, SceneInfo]:
@@ -57,12 +67,8 @@ def index(directory: str = SCENES_DIR) -> dict[str, SceneInfo]:
         path = os.path.join(directory, file)
         header = _header(path)
         paragraph = header.strip().split("\n\n")[0]
-        lines = [" ".join(l.strip() for l in paragraph.splitlines())]
-        estimators = _listed(header, "Estimators")
-        if not estimators:
-            raise ValueError(f"{path}: header has no 'Estimators:' line")
-        out[file[:-4]] = SceneInfo(file[:-4], path, lines[0], estimators,
-                                   _listed(header, "Refused by"))
+        summary = " ".join(line.strip() for line in paragraph.splitlines())
+        out[file[:-4]] = SceneInfo(file[:-4], path, summary, _contains(header, path))
     return out
 
 

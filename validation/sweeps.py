@@ -1,11 +1,12 @@
 """Estimator renders: K independent renders per (estimator, spp), timed.
 
-For one scene, every estimator is first rendered once untimed-for-ranking
-(kernel compile or cache load: reported as compile time), then the ladder is
-walked with estimators interleaved (A B C, then B C A, …) so that machine
-drift hits all of them equally. Each finished (spp) step is saved to
-``<out>/renders/<scene>/spp<N>.npz`` (atomically) under a key; a re-run with
-the same key loads it instead of rendering: an interrupted run resumes.
+:func:`interleaved` is the one way mcillum renders several integrators for
+comparison: K rounds, the integrators rotated every round (A B C, then
+B C A, …) so that machine drift hits all of them alike; render i of every
+integrator uses seed ``seeds[i]``. :func:`run` walks a scene's spp ladder with
+it, one seed block per rung (seeds.py), and saves each finished rung to
+``<out>/renders/<scene>/spp<N>.npz`` (atomically) under a key: a re-run with
+the same key loads it instead of rendering, so an interrupted run resumes.
 """
 
 from __future__ import annotations
@@ -17,10 +18,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import images, renders
+from mcillum import files
 
-#: Seed offset of the timed renders (the compile render uses seed 999_999).
-SEED_BASE = 0
+from . import renders
 
 
 @dataclass
@@ -32,6 +32,33 @@ class Unit:
     images: np.ndarray                      # (K, H, W, C) float32
     seconds: list[float] = field(default_factory=list)
 
+
+def rotation(names: list, i: int) -> list:
+    """The order of round ``i``: ``names`` rotated left by ``i``."""
+    k = i % len(names)
+    return names[k:] + names[:k]
+
+
+def interleaved(scene, integrators: dict, spp: dict[str, int], k: int, seeds: list[int],
+                progress=None, label: str = "") -> dict[str, Unit]:
+    """K renders of each integrator at its own spp, render i with ``seeds[i]``,
+    the integrators rotated every round (:func:`rotation`)."""
+    if len(seeds) < k:
+        raise ValueError(f"{k} renders need {k} seeds, got {len(seeds)}")
+    names = list(integrators)
+    shots = {n: [] for n in names}
+    times = {n: [] for n in names}
+    for i in range(k):
+        for n in rotation(names, i):
+            out = renders.render(scene, integrators[n], spp[n], seed=seeds[i])
+            shots[n].append(out.image)
+            times[n].append(out.seconds)
+            if progress:
+                progress(f"{label} {n} {spp[n]} spp #{i + 1}/{k}")
+    return {n: Unit(n, spp[n], np.stack(shots[n]), times[n]) for n in names}
+
+
+# ------------------------------- A ladder ---------------------------------------
 
 def _key(scene_key: str, estimators, spp: int, k: int, rung: int) -> str:
     return hashlib.sha256(json.dumps([scene_key, list(estimators), spp, k, rung, 2]).encode()
@@ -56,56 +83,27 @@ def _save(path: str, key: str, spp: int, units: dict[str, Unit]) -> None:
     for i, u in enumerate(units.values()):
         arrays[f"images_{i}"] = u.images
         arrays[f"seconds_{i}"] = np.array(u.seconds)
-    with images.atomic_path(path) as tmp:
+    with files.atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             np.savez_compressed(f, **arrays)
 
 
-def compile_times(scene, integrators: dict) -> dict[str, float]:
-    """Seconds of each integrator's first render (compile or kernel-cache load)."""
-    return {name: renders.render(scene, integ, 1, seed=999_999).seconds
-            for name, integ in integrators.items()}
-
-
-def run(scene, scene_key: str, integrators: dict, ladder, k: int, out_dir: str,
-        scene_name: str, progress=None) -> dict[int, dict[str, Unit]]:
-    """All units of one scene: {spp: {estimator: Unit}}."""
-    names = list(integrators)
+def run(ctx) -> dict[int, dict[str, Unit]]:
+    """Every rung of ``ctx.plan.ladder``, K = ``ctx.plan.renders`` renders per
+    estimator of ``ctx.integrators``: {spp: {estimator: Unit}}."""
+    names = list(ctx.integrators)
+    k = ctx.plan.renders
     result = {}
-    for rung, spp in enumerate(ladder):
-        key = _key(scene_key, names, spp, k, rung)
-        path = os.path.join(out_dir, "renders", scene_name, f"spp{spp}.npz")
+    for rung, spp in enumerate(ctx.plan.ladder):
+        key = _key(ctx.scene_key, names, spp, k, rung)
+        path = os.path.join(ctx.run.out_dir, "renders", ctx.id, f"spp{spp}.npz")
         cached = _load(path, key)
         if cached is not None:
             result[spp] = cached
-            if progress:
-                progress(f"{scene_name} {spp} spp: loaded", steps=k * len(names))
+            ctx.run.step(f"{ctx.id} {spp} spp: loaded", k * len(names))
             continue
         # distinct seeds on every rung: rungs are independent samples
-        result[spp] = interleaved(scene, integrators, dict.fromkeys(names, spp), k,
-                                  SEED_BASE + 10_000 * rung, progress, scene_name)
+        result[spp] = interleaved(ctx.scene, ctx.integrators, dict.fromkeys(names, spp), k,
+                                  ctx.seeds("ladder", rung).take(k), ctx.run.step, ctx.id)
         _save(path, key, spp, result[spp])
     return result
-
-
-def interleaved(scene, integrators: dict, spp: dict[str, int], k: int, first_seed: int,
-                progress=None, label: str = "") -> dict[str, Unit]:
-    """K renders of each estimator at its own spp (seeds first_seed + i), the
-    estimators rotated every round (A B C, B C A, …) so drift hits all alike."""
-    names = list(integrators)
-    shots = {n: [] for n in names}
-    times = {n: [] for n in names}
-    for i in range(k):
-        for n in names[i % len(names):] + names[:i % len(names)]:
-            out = renders.render(scene, integrators[n], spp[n], seed=first_seed + i)
-            shots[n].append(out.image)
-            times[n].append(out.seconds)
-            if progress:
-                progress(f"{label} {n} {spp[n]} spp #{i + 1}/{k}")
-    return {n: Unit(n, spp[n], np.stack(shots[n]), times[n]) for n in names}
-
-
-def equal_time_renders(scene, integrators: dict, spp: dict[str, int], k: int,
-                       progress=None) -> dict[str, Unit]:
-    """K renders of each estimator at its own spp (the equal-time check)."""
-    return interleaved(scene, integrators, spp, k, 500_000, progress, "equal time")

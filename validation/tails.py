@@ -18,13 +18,10 @@ trusts a sample variance that rests on a few of them. Definitions (used by
   ``path`` at the same spp·(ratio), i.e. spp · mean relMSE(estimator) / mean
   relMSE(path) — valid for unbiased estimators, whose relMSE falls as 1/spp —
   with a bootstrap interval over seeds (heavy tails make it wide: say so).
-* replication: a per-pixel t-test on K renders of a heavy-tailed estimator
-  rejects more often than its level says (the mean of a right-skewed sample
-  is usually low, and so is its variance estimate). A rejection is therefore
-  only believed if it replicates: K fresh renders, tested at the rejected
-  pixels alone (Šidák over those) and on the image mean, must reject again.
-  An artefact of an unseen tail replicates with probability about α; a bias
-  replicates with the test's power (see validation/failures.py).
+* heavy tail (:func:`is_heavy`, the one rule every report and verdict
+  uses): the worst render's relMSE is over ``TAIL_RATIO`` × the median and
+  over ``TAIL_RELMSE`` (a near-exact estimator's ratio of tiny numbers names
+  no tail), or fireflies are over ``TAIL_FIREFLIES`` of all pixels.
 """
 
 from __future__ import annotations
@@ -34,20 +31,42 @@ import numpy as np
 from mcillum.envmaps.sun import luminance
 
 from . import metrics
+from .results import Percentiles, SppToMatch
 
 FIREFLY_FACTOR = 10.0
 FIREFLY_FLOOR = 0.01
+TAIL_RATIO = 10.0
+TAIL_RELMSE = 1e-3
+TAIL_FIREFLIES = 1e-3
+
+
+def bad_values(x: np.ndarray) -> tuple[int, int]:
+    """(NaN/Inf values, negative values) in renders ``x``."""
+    return int((~np.isfinite(x)).sum()), int((x < 0).sum())
+
+
+def tail_ratio(per_render: np.ndarray) -> float:
+    """Worst over median per-render relMSE (1 where the median is 0)."""
+    med = float(np.median(per_render))
+    return float(np.max(per_render) / med) if med > 0 else 1.0
+
+
+def is_heavy(relmse_max: float, relmse_median: float, firefly_fraction: float) -> bool:
+    """Is an error distribution heavy-tailed (see the module doc)?"""
+    ratio = relmse_max / relmse_median if relmse_median > 0 else 1.0
+    return (ratio > TAIL_RATIO and relmse_max > TAIL_RELMSE) or \
+        firefly_fraction > TAIL_FIREFLIES
+
 
 def per_render_relmse(renders: np.ndarray, reference: np.ndarray) -> np.ndarray:
     """relMSE of each render of a (K, H, W, C) stack against (H, W, C)."""
     return np.array([metrics.relmse(x[..., :3], reference[..., :3]) for x in renders])
 
 
-def percentiles(values: np.ndarray) -> dict:
+def percentiles(values: np.ndarray) -> Percentiles:
     v = np.asarray(values, np.float64)
-    return {"mean": float(v.mean()), "median": float(np.median(v)),
-            "p90": float(np.percentile(v, 90)), "p99": float(np.percentile(v, 99)),
-            "max": float(v.max())}
+    return Percentiles(float(v.mean()), float(np.median(v)), float(np.percentile(v, 90)),
+                       float(np.percentile(v, 99)), float(v.max()))
 
 
 def firefly_mask(renders: np.ndarray, reference: np.ndarray) -> np.ndarray:
@@ -62,7 +81,7 @@ def firefly_fraction(renders: np.ndarray, reference: np.ndarray) -> float:
 
 
 def spp_to_match(relmse_est: np.ndarray, relmse_ref: np.ndarray, spp: int,
-                 boot: int = 2000, level: float = 0.9, seed: int = 0) -> dict:
+                 boot: int = 2000, level: float = 0.9, seed: int = 0) -> SppToMatch:
     """spp an estimator needs for the mean relMSE ``path`` has at ``spp``,
     assuming relMSE ∝ 1/spp, with a bootstrap ``level`` interval over seeds."""
     a, b = np.asarray(relmse_est, np.float64), np.asarray(relmse_ref, np.float64)
@@ -72,4 +91,4 @@ def spp_to_match(relmse_est: np.ndarray, relmse_ref: np.ndarray, spp: int,
     ib = rng.integers(0, b.size, (boot, b.size))
     ratios = spp * a[ia].mean(axis=1) / b[ib].mean(axis=1)
     lo, hi = np.percentile(ratios, [50 * (1 - level), 50 * (1 + level)])
-    return {"spp": float(point), "low": float(lo), "high": float(hi), "level": level}
+    return SppToMatch(float(point), float(lo), float(hi), level)

@@ -1,7 +1,8 @@
 """mcillum: Monte Carlo estimators of the illumination integral as Mitsuba 3
 plugins, and the suite that validates them against Mitsuba's path tracer.
 
-The repository's top level is this package (``pyproject.toml`` maps it):
+This folder holds the package's own modules; ``pyproject.toml`` maps the
+repository's top-level folders into it:
 
 * :mod:`mcillum.integrators` — the plugins, one estimator per file, and the
   registry of their facts;
@@ -11,7 +12,7 @@ The repository's top level is this package (``pyproject.toml`` maps it):
   checks → results → report, and the ``mcillum`` command;
 * :mod:`mcillum.files` — atomic writes, EXR files and the cache directory,
   shared by envmaps and validation;
-* ``scenes/`` — the Mitsuba XML scenes (installed as package data).
+* ``mcillum.scenes`` — the Mitsuba XML scenes of ``scenes/`` (data only).
 
 ``import mcillum`` points Dr.Jit at the bundled libLLVM (so import it before
 ``drjit`` or ``mitsuba``) and registers the plugins for the current Mitsuba

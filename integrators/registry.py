@@ -1,0 +1,131 @@
+"""The estimators mcillum knows, and the facts the validation suite reads off them.
+
+Each plugin class declares its facts as class attributes beside its strategy
+(see :class:`~mcillum.integrators.estimator.IlluminationEstimator`):
+
+* ``plugin_name`` — the name Mitsuba knows it by (``<integrator type=...>``);
+* ``display_name`` — a few words for people;
+* ``colour`` — its colour on every chart of a report;
+* ``reachable`` — the kinds of scene content
+  (:data:`~mcillum.integrators.scene_checks.KINDS`) it renders without bias
+  although a continuous hemisphere pdf cannot (delta lights, delta lobes,
+  transmission); it refuses scenes holding any other kind;
+* ``max_direction_pdf`` — the largest density it puts on any direction, which
+  bounds how often it can hit a small source (None: it depends on the BSDF
+  lobe, or next-event estimation finds the source anyway);
+* ``listing_order`` — where it stands in tables and charts.
+
+:func:`register` (called at the bottom of every plugin file) registers the
+class with Mitsuba for the current variant and records its facts here. Facts
+do not depend on the variant, so once recorded they stay readable after a
+variant switch. Mitsuba's own ``path``, the reference of every comparison,
+has its facts in :data:`PATH`.
+
+:func:`names` lists the registered estimators: profiles, charts, the
+failures group and the tests all read this list, so adding an estimator is
+adding its file.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+
+import mitsuba as mi
+
+from .scene_checks import KINDS
+
+#: Name of the reference integrator (Mitsuba's path tracer).
+REFERENCE = "path"
+
+#: Colours for integrators that declare none (any Mitsuba plugin can be validated).
+SPARE_COLOURS = ("#8c564b", "#e377c2", "#17becf", "#bcbd22", "#7f7f7f")
+
+
+@dataclass(frozen=True)
+class Facts:
+    """What the validation suite needs to know about one integrator."""
+
+    name: str
+    display_name: str
+    colour: str | None
+    reachable: frozenset = frozenset()
+    max_direction_pdf: float | None = None
+    listing_order: int = 100
+    ours: bool = True
+
+    @property
+    def unreachable(self) -> tuple[str, ...]:
+        """The kinds of content it refuses (participating media always)."""
+        return tuple(k for k in KINDS if k not in self.reachable)
+
+    def renders(self, contains) -> bool:
+        """Does it render a scene holding these kinds of content?"""
+        return all(kind in self.reachable for kind in contains)
+
+
+#: Mitsuba's `path`: emitter sampling and BSDF sampling, MIS; no media.
+PATH = Facts(REFERENCE, "path tracer (Mitsuba)", "#444444",
+             frozenset({"delta_emitter", "delta_bsdf", "transmission"}), None,
+             listing_order=1000, ours=False)
+
+_facts: dict[str, Facts] = {}
+
+
+def facts_of(cls) -> Facts:
+    """The :class:`Facts` a plugin class declares."""
+    return Facts(cls.plugin_name, cls.display_name or cls.plugin_name, cls.colour,
+                 frozenset(cls.reachable), cls.max_direction_pdf, cls.listing_order)
+
+
+def register(cls) -> type:
+    """Register plugin class ``cls`` with Mitsuba (current variant) under its
+    ``plugin_name``, and record its facts. Returns ``cls``."""
+    mi.register_integrator(cls.plugin_name, lambda props, cls=cls: cls(props))
+    _facts[cls.plugin_name] = facts_of(cls)
+    return cls
+
+
+def unregister(name: str) -> None:
+    """Forget the facts of ``name`` (Mitsuba keeps the plugin until exit)."""
+    _facts.pop(name, None)
+
+
+def names() -> list[str]:
+    """Every registered mcillum estimator, in listing order (not ``path``)."""
+    if not _facts:
+        raise RuntimeError(
+            "no mcillum estimator is registered yet: set a Mitsuba variant first "
+            "(mi.set_variant('llvm_ad_rgb') after `import mcillum`); the plugin classes "
+            "bind to it")
+    return sorted(_facts, key=lambda n: (_facts[n].listing_order, n))
+
+
+def facts(name: str) -> Facts:
+    """Facts of a registered estimator or ``path``; an integrator we know
+    nothing about (any other Mitsuba plugin) gets neutral facts: no colour of
+    its own, assumed to reach everything."""
+    if name == REFERENCE:
+        return PATH
+    if name in _facts:
+        return _facts[name]
+    return Facts(name, name, None, frozenset(KINDS), None, listing_order=500, ours=False)
+
+
+def palette(names_) -> dict[str, str]:
+    """Name → colour for the integrators ``names_``: their own, else a spare
+    one (stable for a given list)."""
+    names_ = list(names_)
+    spare = iter(SPARE_COLOURS * (1 + len(names_) // len(SPARE_COLOURS)))
+    out = {}
+    for n in names_:
+        out[n] = facts(n).colour or next(spare)
+    return out
+
+
+def is_estimator(integrator) -> bool:
+    """Is ``integrator`` an instance of one of mcillum's estimator classes
+    (which plan their own passes beyond 2³² samples)?"""
+    # (the module binds to a variant, so it is looked up, not imported, here)
+    base = sys.modules.get(f"{__package__}.estimator")
+    return base is not None and isinstance(integrator, base.IlluminationEstimator)

@@ -1,0 +1,108 @@
+"""The estimator registry: every plugin declares its facts, and the registry
+alone tells profiles, charts, the failures group, scene selection and the
+tests which estimators exist. A throw-away estimator class, registered and
+nothing else, appears in all of them."""
+
+import math
+import re
+
+import pytest
+
+import mitsuba as mi
+
+from mcillum.integrators import registry
+from mcillum.integrators.scene_checks import KINDS
+from mcillum.validation import charts, pipeline, profiles, results, scenes, stages
+
+import conftest
+
+
+def test_every_estimator_declares_its_facts(llvm):
+    names = registry.names()
+    assert names == ["uniform_hemisphere", "cosine_hemisphere", "bsdf_sampling",
+                     "emitter_sampling", "mis"]
+    colours = [registry.facts(n).colour for n in names] + [registry.PATH.colour]
+    assert all(re.fullmatch(r"#[0-9a-f]{6}", c) for c in colours)
+    assert len(set(colours)) == len(colours), "two estimators share a colour"
+    for n in names:
+        f = registry.facts(n)
+        assert f.display_name and f.display_name != n
+        assert set(f.reachable) <= set(KINDS) and "medium" in f.unreachable
+
+
+def test_largest_direction_pdfs_are_the_strategies_own(llvm):
+    """p(ω) = 1/2π (uniform), at most 1/π (cosine); None where the BSDF or
+    next-event estimation decides."""
+    assert registry.facts("uniform_hemisphere").max_direction_pdf == pytest.approx(
+        1 / (2 * math.pi))
+    assert registry.facts("cosine_hemisphere").max_direction_pdf == pytest.approx(1 / math.pi)
+    for n in ("bsdf_sampling", "emitter_sampling", "mis"):
+        assert registry.facts(n).max_direction_pdf is None
+
+
+def test_scenes_are_rendered_by_exactly_the_estimators_that_reach_them(llvm):
+    """point_light holds a delta light, smooth_glass delta lobes and
+    transmission: the facts pick the estimators that render each."""
+    index = scenes.index()
+
+    def rendering(scene):
+        return [n for n in [*registry.names(), "path"]
+                if registry.facts(n).renders(index[scene].contains)]
+
+    assert rendering("point_light") == ["emitter_sampling", "mis", "path"]
+    assert rendering("smooth_glass") == ["bsdf_sampling", "mis", "path"]
+    assert rendering("cornell_box") == [*registry.names(), "path"]
+
+
+@pytest.fixture
+def throwaway(llvm):
+    """A new estimator, added the way a plugin file adds one."""
+    base = type(mi.load_dict({"type": "cosine_hemisphere"}))
+
+    class Throwaway(base):
+        plugin_name = "throwaway_estimator"
+        display_name = "a throw-away estimator"
+        colour = "#123456"
+        reachable = frozenset({"delta_emitter"})
+        max_direction_pdf = 0.25
+        listing_order = 25
+
+    registry.register(Throwaway)
+    yield "throwaway_estimator"
+    registry.unregister("throwaway_estimator")
+
+
+def test_a_new_estimator_appears_everywhere_without_other_edits(throwaway):
+    # profiles: every profile compares it, in its listing order, before path
+    for profile in profiles.PROFILES.values():
+        names = profile.estimator_names()
+        assert throwaway in names and names[-1] == "path"
+        assert names.index(throwaway) == names.index("cosine_hemisphere") + 1
+    # tests: the lists they parametrise over
+    assert throwaway in conftest.estimators()
+    assert throwaway in conftest.hemisphere_estimators()
+    # scenes: it renders the point light (it reaches delta lights), unlike
+    # the estimator it derives from
+    contains = scenes.index()["point_light"].contains
+    assert registry.facts(throwaway).renders(contains)
+    assert not registry.facts("cosine_hemisphere").renders(contains)
+    # failures group: its bound on direct sun hits, N·Ω·max p
+    assert stages.expected_sun_hits(throwaway, 1000, 0.01) == pytest.approx(1000 * 0.01 * 0.25)
+    # results and report: the run records its facts, the charts take its colour
+    facts = pipeline.estimator_facts([throwaway, "path"])
+    assert facts[throwaway].colour == "#123456"
+    assert facts[throwaway].unreachable == ["delta_bsdf", "transmission", "medium"]
+    row = results.SweepRow(throwaway, [1.0], [1.0], None, 0, {}, "fine")
+    run = results.Results("t", "quick", "llvm_ad_rgb", "3.9", "1.5", {}, 0.01, 0.1, 1.0, [],
+                          [], [results.CaseResult("failures.glossy.x", "glossy", "x", "x", {},
+                                                  8, 16, 4, -1, "", [row])], facts)
+    assert charts.palette(run) == {throwaway: "#123456"}
+    # Mitsuba loads it by name, from Python and from XML
+    scene = mi.load_string(f"""<scene version="3.0.0">
+        <integrator type="{throwaway}"/>
+        <sensor type="perspective"><film type="hdrfilm"><integer name="width" value="2"/>
+            <integer name="height" value="2"/></film></sensor>
+        <emitter type="constant"/></scene>""")
+    assert scene.integrator().plugin_name == throwaway
+
+

@@ -1,0 +1,104 @@
+"""The context of one scene run or failure case on its way through the stages.
+
+:class:`Run` holds what every context of one ``mcillum validate`` shares (the
+profile, the variant, where files go, progress). :class:`Context` is one
+scene of a profile (a :class:`~mcillum.validation.profiles.SceneRun`) or one
+failure case (a :class:`~mcillum.validation.profiles.FailureCase`): what it
+renders, and what each stage of :mod:`~mcillum.validation.stages` has found
+so far. Every field below the line "filled by the stages" names the stage
+that fills it.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+
+from . import seeds
+
+
+@dataclass
+class Run:
+    """What every context of one validation run shares."""
+
+    profile: object                 # profiles.Profile
+    variant: str
+    cache_dir: str                  # references and generated maps
+    out_dir: str                    # the run's --out
+    progress: object = None         # progress.Progress, or None (silent)
+
+    def step(self, what: str, steps: int = 1) -> None:
+        if self.progress is not None:
+            self.progress(what, steps)
+
+
+@dataclass
+class Context:
+    run: Run
+    plan: object                    # profiles.SceneRun or profiles.FailureCase
+    id: str                         # scene name or case id: the prefix of its checks
+    estimators: list[str]           # asked for, `path` last
+    defines: dict = field(default_factory=dict)   # $-parameters besides res
+    label: str = ""                 # what progress lines call it
+    #: Seed streams (seeds.py) of its K renders and of their replication.
+    streams: dict = field(default_factory=lambda: {"renders": "failure",
+                                                   "replication": "replication"})
+
+    # ----------------------- filled by the stages ---------------------------
+    info: object = None             # load: scenes.SceneInfo
+    resolved: dict = None           # load: $-parameters as Mitsuba gets them
+    scene: object = None            # load: the mi.Scene
+    scene_key: str = ""             # load: content hash (references.cache_key)
+    params: dict = None             # load: integrator properties ({"max_depth": d})
+    integrators: dict = field(default_factory=dict)   # choose_estimators / probe_refusals
+    refused: dict = field(default_factory=dict)       # probe_refusals: name → message
+    compile_seconds: dict = field(default_factory=dict)  # render_*: first render each
+    units: dict = field(default_factory=dict)         # render_*: spp → name → Unit
+    reference: object = None        # build_reference: references.Reference
+    measured: dict = field(default_factory=dict)      # measure: name → EstimatorResult
+    rows: dict = field(default_factory=dict)          # tail_numbers …: name → CaseRow
+    sweep_rows: list = field(default_factory=list)    # sweep: SweepRow per estimator
+    equal_time: object = None       # equal_time: results.EqualTime
+    equal_units: dict = field(default_factory=dict)   # equal_time: name → Unit
+    checks: list = field(default_factory=list)        # judge_*: results.Check
+
+    @property
+    def scene_name(self) -> str:
+        return self.plan.scene
+
+    @property
+    def res(self) -> int:
+        return self.plan.res
+
+    @property
+    def max_depth(self) -> int:
+        return self.plan.max_depth
+
+    @property
+    def is_case(self) -> bool:
+        """A failure case (or a point of one's sweep), not a scene comparison."""
+        return hasattr(self.plan, "group")
+
+    @property
+    def images_dir(self) -> str:
+        """Where this context's images go (created on first use)."""
+        if self.is_case:
+            d = os.path.join(self.run.out_dir, "failures", self.id)
+        else:
+            d = os.path.join(self.run.out_dir, "images", self.id)
+        os.makedirs(d, exist_ok=True)
+        return d
+
+    @staticmethod
+    def seeds(name: str, block: int = 0) -> seeds.Stream:
+        """Seed stream ``name`` (see seeds.py)."""
+        return seeds.stream(name, block)
+
+    def derive(self, estimators=None, *, label: str = "", streams: dict | None = None,
+               **defines) -> "Context":
+        """The same plan with other $-parameters (a sweep point, the sunless
+        map) and, optionally, fewer estimators or other seed streams; nothing
+        measured yet."""
+        return Context(self.run, self.plan, self.id, list(estimators or self.estimators),
+                       {**self.defines, **defines}, label or self.label,
+                       dict(streams or self.streams))

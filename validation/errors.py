@@ -1,0 +1,95 @@
+"""Errors that reach a user, and Mitsuba's error text made readable.
+
+* :class:`UserError` — a mistake in what the user gave, with a message that
+  says what was wrong and what to do. ``usage`` says whether the command line
+  alone shows it (exit code 2 in the CLI: an unknown integrator, a bad
+  integrator parameter, an output path that cannot be written) or it was
+  found while loading or rendering (exit code 1: a broken scene file, an
+  unknown $-parameter, a refused environment map).
+* :class:`Interrupted` — Ctrl-C or SIGTERM, with what was left and what to do.
+* :func:`message` — the innermost cause of an exception as one line: Mitsuba
+  wraps a plugin's error in "At dictionary node …", source locations and the
+  Python traceback of the plugin; only the cause is kept.
+"""
+
+from __future__ import annotations
+
+import re
+
+
+class UserError(Exception):
+    """A mistake in the user's input; the message says what to do."""
+
+    usage = False
+
+
+class IntegratorError(UserError):
+    """An unknown integrator, a plugin that is not one, or a bad parameter."""
+
+    usage = True
+
+
+class SceneError(UserError):
+    """A scene that cannot be loaded as given."""
+
+
+class Interrupted(Exception):
+    """Ctrl-C or SIGTERM, with what was left and what to do."""
+
+
+def root_cause(exc: BaseException) -> BaseException:
+    """The innermost exception of a chain (``mi.render`` wraps plugin errors)."""
+    while exc.__cause__ is not None:
+        exc = exc.__cause__
+    return exc
+
+
+def is_interrupt(exc: BaseException) -> bool:
+    """Ctrl-C, possibly wrapped by Mitsuba or Dr.Jit on its way out of a render."""
+    return isinstance(root_cause(exc), KeyboardInterrupt) or "KeyboardInterrupt" in str(exc)
+
+
+#: Mitsuba's "[parser.cpp:1718] " source locations.
+_SOURCE = re.compile(r"\[[\w./\\-]+\.(?:cpp|h|inl|py):\d+\]\s*")
+_TRACEBACK = "Traceback (most recent call last):"
+#: The head of Mitsuba's errors from ``mi.load_dict`` (no file, no line: noise).
+_DICT_HEAD = re.compile(r'^(?:While loading|At) dictionary node "[^"]*":\s*'
+                        r'(?:failed to instantiate [\w ]*plugin of type "[^"]*":\s*)?')
+
+
+def message(err: BaseException, context: bool = True) -> str:
+    """The innermost cause of ``err`` as one clean message: no Mitsuba source
+    locations, and no Python traceback (Mitsuba embeds one in the message of a
+    Python plugin's exception): only its last exception line. ``context=False``
+    drops Mitsuba's "At dictionary node ...: failed to instantiate ..." head."""
+    cause = root_cause(err)
+    text = str(cause).strip() or f"{type(cause).__name__} (no message)"
+    head, marker, _ = text.partition(_TRACEBACK)
+    if marker:
+        lines = text.rpartition(_TRACEBACK)[2].splitlines()[1:]
+        start = next((k for k, line in enumerate(lines) if line and not line[0].isspace()),
+                     len(lines))
+        last = re.sub(r"^[A-Za-z_][\w.]*(?:Error|Exception): ", "",
+                      "\n".join(lines[start:]).strip())
+        head = head.strip().rstrip(":").strip()
+        text = f"{head}: {last}" if head and context else last
+    text = _SOURCE.sub("", text).replace("unknown plugin of type", "plugin of type")
+    if not context:
+        text = _DICT_HEAD.sub("", text)
+    return text.strip()
+
+
+def unused_defines(text: str) -> list[str]:
+    """The $-parameters Mitsuba's parser reports as given but unused."""
+    return re.findall(r"^\s*- \$(\w+)=", text, re.M)
+
+
+def plugin_not_found(text: str) -> bool:
+    return re.search(r'Plugin "[^"]*" not found', text) is not None
+
+
+def unreferenced_properties(text: str) -> list[str]:
+    """The properties Mitsuba reports as given to a plugin that never read them."""
+    if "unreferenced propert" not in text:
+        return []
+    return re.findall(r'^\s*- \w+ "([^"]+)"', text, re.M)

@@ -1,0 +1,164 @@
+"""`mcillum validate`: the one orchestrator.
+
+For every scene of a profile and every case of its failures group, a
+:class:`~.context.Context` goes through a list of stages (:mod:`.stages`):
+
+    scene comparison   load → choose estimators → K renders per rung of an spp
+                       ladder → reference → statistics → checks → equal time →
+                       images
+    failure case       load → refusals → K seeds → reference → tail numbers →
+                       bias test (replicated) → sun split → checks → evidence
+    sweep              each parameter value: load → K seeds → reference →
+                       tail numbers; then rows along the sweep → checks
+
+The reference comes after the estimator renders because its precision target
+depends on them. Then results.json, results.csv, summary.md and the report.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import time
+
+import drjit as dr
+import mitsuba as mi
+
+from mcillum import files
+from mcillum.integrators import registry
+
+from . import profiles, renders, report, results, stages, statistics
+from .context import Context, Run
+from .errors import Interrupted
+from .progress import Progress
+
+SCENE = (stages.load, stages.choose_estimators, stages.render_ladder, stages.build_reference,
+         stages.measure, stages.judge_scene, stages.equal_time, stages.save_images)
+CASE = (stages.load, stages.probe_refusals, stages.render_seeds, stages.build_reference,
+        stages.tail_numbers, stages.test_bias, stages.split_sun, stages.judge_case,
+        stages.save_evidence)
+SWEEP_POINT = (stages.load, stages.choose_estimators, stages.render_seeds,
+               stages.build_reference, stages.tail_numbers)
+
+GROUPS = ("scenes", "failures")
+
+
+def run_stages(stage_list, ctx: Context) -> Context:
+    for stage in stage_list:
+        stage(ctx)
+    return ctx
+
+
+def compare_scene(run: Run, plan: profiles.SceneRun, estimators) -> results.SceneResult:
+    ctx = run_stages(SCENE, Context(run, plan, plan.scene, list(estimators),
+                                    dict(plan.defines), label=plan.scene))
+    return stages.scene_result(ctx), ctx.checks
+
+
+def failure_case(run: Run, plan: profiles.FailureCase, estimators) -> results.CaseResult:
+    ctx = Context(run, plan, plan.id, list(estimators), dict(plan.defines), label=plan.id)
+    if not plan.sweep:
+        run_stages(CASE, ctx)
+        return stages.case_result(ctx), ctx.checks
+    param, values = plan.sweep
+    points = [run_stages(SWEEP_POINT, ctx.derive(label=f"{plan.id} {v}", **{param: v}))
+              for v in values]
+    stages.sweep_rows(ctx, points)
+    stages.judge_sweep(ctx)
+    return stages.sweep_result(ctx), ctx.checks
+
+
+def validate(profile_name: str = "quick", scene_names=None, estimators=None,
+             out_dir: str = "out/validate", cache_dir: str | None = None,
+             variant: str | None = None, progress: bool | None = None,
+             groups=GROUPS) -> results.Results:
+    """Run a profile: its scene comparisons and/or its failures group
+    (``groups``), filtered by scene name; write the results and the report.
+
+    Ctrl-C raises :class:`~.errors.Interrupted` saying what was left and what
+    to do (finished renders are kept and reused by the next run).
+    """
+    profile = profiles.PROFILES[profile_name]
+    variant = renders.set_variant(variant)
+    estimators = list(estimators or profile.estimator_names())
+    cases_estimators = list(dict.fromkeys([*estimators, registry.REFERENCE]))
+    plans = [r for r in profile.runs if "scenes" in groups
+             and (not scene_names or r.scene in scene_names)]
+    cases = [c for c in profile.failures if "failures" in groups
+             and (not scene_names or c.scene in scene_names)]
+    cache_dir = cache_dir or files.cache_dir()
+    os.makedirs(out_dir, exist_ok=True)
+    for d in (out_dir, cache_dir):   # left by a killed run (one writer at a time)
+        files.remove_stale_partials(d, recursive=True)
+    json_path = os.path.join(out_dir, "results.json")
+    before = _stamp(json_path)
+    total = sum(r.renders * len(estimators) * (len(r.ladder) + 1) for r in plans) + \
+        sum(c.seeds * len(cases_estimators) * max(1, len(c.sweep[1]) if c.sweep else 1)
+            for c in cases)
+    bar = Progress(total, progress)
+    run = Run(profile, variant, cache_dir, out_dir, bar)
+    start = time.perf_counter()
+    try:
+        scene_results, case_results, checks = [], [], []
+        try:
+            for plan in plans:
+                result, found = compare_scene(run, plan, estimators)
+                scene_results.append(result)
+                checks += found
+            for plan in cases:
+                result, found = failure_case(run, plan, cases_estimators)
+                case_results.append(result)
+                checks += found
+        finally:
+            bar.close()
+        out = results.Results(
+            time.strftime("%Y-%m-%dT%H:%M:%S%z"), profile.name, variant, mi.__version__,
+            dr.__version__, _machine(), statistics.ALPHA, profile.reference_fraction,
+            time.perf_counter() - start, scene_results, checks, case_results,
+            estimator_facts([*estimators, *cases_estimators]))
+        results.write_json(json_path, out)
+    except KeyboardInterrupt:
+        raise Interrupted(_left_behind(out_dir, json_path, before)) from None
+    try:
+        results.write_csv(os.path.join(out_dir, "results.csv"), out)
+        files.write_text(os.path.join(out_dir, "summary.md"), results.summary(out))
+        report.build(out_dir, out)
+    except KeyboardInterrupt:
+        raise Interrupted(f"while writing the report: {json_path} is complete; run "
+                          f"`mcillum report {out_dir}` to write the report") from None
+    return out
+
+
+def estimator_facts(names) -> dict[str, results.EstimatorInfo]:
+    """The registry's facts of ``names``, as the results record them."""
+    names = list(dict.fromkeys(names))
+    colours = registry.palette(names)
+    return {n: results.EstimatorInfo(registry.facts(n).display_name, colours[n],
+                                     list(registry.facts(n).unreachable),
+                                     registry.facts(n).max_direction_pdf) for n in names}
+
+
+def _machine() -> dict:
+    return {"platform": platform.platform(), "processor": platform.processor(),
+            "cpus": os.cpu_count(), "python": platform.python_version()}
+
+
+def _stamp(path: str):
+    """(mtime, ``created``) of a results.json; None if absent or unreadable."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            created = json.load(f).get("created") or "at an unknown date"
+        return os.stat(path).st_mtime_ns, created
+    except (OSError, ValueError, AttributeError):
+        return None
+
+
+def _left_behind(out_dir: str, json_path: str, before) -> str:
+    """What an interrupted run leaves, and what to do about it."""
+    resume = (f"finished renders are kept in {out_dir} and reused: run the same command "
+              "again to resume")
+    if before is None:
+        return f"no results were written; {resume}"
+    return (f"{json_path} is from an earlier run (created {before[1]}), not this one; "
+            f"{resume}")

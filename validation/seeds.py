@@ -1,0 +1,97 @@
+"""Which sampler seed each render of a validation uses, decided in one place.
+
+Renders that a statistic treats as independent must not share seeds (two
+renders with one seed are the same image). Every stage therefore takes its
+seeds from a named stream of :data:`STREAMS`, and no two streams overlap
+(tests/test_seeds.py checks it). Streams that are split into blocks (one block
+per ladder rung) hand out one block per index.
+
+The numbers are those mcillum has always used, so a validation run renders
+the same images as before the allocator existed:
+
+    ladder           rung r, render i  →  10 000·r + i       (50 rungs × 10 000)
+    equal_time       500 000 + i
+    refusal_probe    699 999             (the 1-spp render that asks for a refusal)
+    failure          700 000 + i         (K seeds per failure case)
+    sunless          750 000 + i         (the same case on its map without the sun)
+    replication      800 000 + i         (fresh renders that must repeat a rejection)
+    sunless_replication 850 000 + i
+    bench            900 000 + i         (`mcillum bench`)
+    compile          999 999             (each integrator's first, untimed render)
+    reference        1 000 000 + pass    (Mitsuba's `path`, one seed per pass)
+
+Within one scene run or failure case every stream is used once; different
+scenes reuse them (they are different experiments).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Stream:
+    """Seeds ``first, first + 1, …, first + size − 1``."""
+
+    name: str
+    first: int
+    size: int
+
+    def seed(self, i: int = 0) -> int:
+        """The ``i``-th seed of the stream."""
+        if not 0 <= i < self.size:
+            raise ValueError(f"seed stream '{self.name}' holds {self.size} seeds; "
+                             f"index {i} is outside it")
+        return self.first + i
+
+    def take(self, k: int) -> list[int]:
+        """The first ``k`` seeds."""
+        if not 0 <= k <= self.size:
+            raise ValueError(f"seed stream '{self.name}' holds {self.size} seeds; "
+                             f"{k} were asked for")
+        return list(range(self.first, self.first + k))
+
+    @property
+    def last(self) -> int:
+        return self.first + self.size - 1
+
+
+@dataclass(frozen=True)
+class Layout:
+    """A stream split into ``blocks`` blocks of ``size`` seeds from ``first``."""
+
+    first: int
+    size: int
+    blocks: int = 1
+
+
+#: Every stream: name → where its seeds lie. Seeds are 32-bit (Mitsuba's).
+STREAMS = {
+    "ladder": Layout(0, 10_000, blocks=50),
+    "equal_time": Layout(500_000, 100_000),
+    "refusal_probe": Layout(699_999, 1),
+    "failure": Layout(700_000, 50_000),
+    "sunless": Layout(750_000, 50_000),
+    "replication": Layout(800_000, 50_000),
+    "sunless_replication": Layout(850_000, 50_000),
+    "bench": Layout(900_000, 99_999),
+    "compile": Layout(999_999, 1),
+    "reference": Layout(1_000_000, 2 ** 32 - 1_000_000),
+}
+
+
+def stream(name: str, block: int = 0) -> Stream:
+    """Block ``block`` of the stream called ``name``."""
+    if name not in STREAMS:
+        raise KeyError(f"no seed stream '{name}'; the streams are {', '.join(STREAMS)}")
+    layout = STREAMS[name]
+    if not 0 <= block < layout.blocks:
+        raise ValueError(f"seed stream '{name}' has {layout.blocks} block(s); "
+                         f"block {block} is outside it")
+    label = name if layout.blocks == 1 else f"{name}[{block}]"
+    return Stream(label, layout.first + block * layout.size, layout.size)
+
+
+def all_streams() -> list[Stream]:
+    """Every block of every stream (for the overlap test)."""
+    return [stream(name, b) for name, layout in STREAMS.items() for b in range(layout.blocks)]

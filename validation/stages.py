@@ -1,0 +1,337 @@
+"""The stages of a validation run: each is ``stage(context) -> None``.
+
+A stage reads what earlier stages put on the :class:`~.context.Context` and
+adds what it finds. :mod:`~mcillum.validation.pipeline` lists which stages a
+scene comparison, a failure case and a point of a parameter sweep run, in
+order. The stages gather evidence (renders, reference, numbers, tests); the
+verdicts are the checks' (:mod:`~mcillum.validation.checks`).
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from mcillum import files
+from mcillum.envmaps import sun
+from mcillum.integrators import UnreachableContentError, registry
+
+from . import analysis, checks, references, renders, scenes, statistics, sweeps, tails
+from .errors import root_cause
+from .results import (BatchTest, CaseReference, CaseResult, CaseRow, EstimatorResult,
+                      ReferenceSummary, SceneResult, SunSplit, Sweep, SweepRow, TailNumbers)
+
+REFERENCE = registry.REFERENCE
+ALPHA = statistics.ALPHA
+
+
+# ----------------------------- Scene and estimators ----------------------------
+
+def load(ctx) -> None:
+    """The scene with the plan's resolution and $-parameters; its cache key."""
+    index = scenes.index()
+    if ctx.scene_name not in index:
+        raise ValueError(f"{ctx.id}: no scene '{ctx.scene_name}' in {scenes.SCENES_DIR}")
+    ctx.info = index[ctx.scene_name]
+    ctx.resolved = renders.resolve_defines(ctx.info.path, **{"res": ctx.res, **ctx.defines})
+    ctx.scene = renders.load_resolved(ctx.info.path, ctx.resolved)
+    ctx.params = {"max_depth": ctx.max_depth}
+    ctx.scene_key = references.cache_key(ctx.info.path, ctx.resolved, ctx.params,
+                                         ctx.run.variant)
+
+
+def choose_estimators(ctx) -> None:
+    """The estimators asked for whose registry facts say they reach every
+    kind of content the scene header declares."""
+    ctx.integrators = {n: renders.make_integrator(n, ctx.params) for n in ctx.estimators
+                       if registry.facts(n).renders(ctx.info.contains)}
+
+
+def probe_refusals(ctx) -> None:
+    """Ask each estimator, with a 1-spp render, whether it refuses the scene.
+    In the ``unreachable`` group a refusing estimator then renders with
+    ``allow_unreachable=true``, so that the bias the user opts into is measured."""
+    for name in ctx.estimators:
+        error = None if name == REFERENCE else _refusal(ctx, name)
+        if error is None:
+            ctx.integrators[name] = renders.make_integrator(name, ctx.params)
+            continue
+        ctx.refused[name] = error
+        if ctx.plan.group == "unreachable":
+            ctx.integrators[name] = renders.make_integrator(
+                name, {**ctx.params, "allow_unreachable": True})
+
+
+def _refusal(ctx, name: str) -> UnreachableContentError | None:
+    try:
+        renders.render(ctx.scene, renders.make_integrator(name, ctx.params), 1,
+                       ctx.seeds("refusal_probe").seed())
+    except Exception as exc:  # noqa: BLE001  (mi.render wraps the plugin's error)
+        cause = root_cause(exc)
+        if isinstance(cause, UnreachableContentError):
+            return cause
+        raise
+    return None
+
+
+# ----------------------------------- Renders ------------------------------------
+
+def _compile(ctx) -> None:
+    seed = ctx.seeds("compile").seed()
+    ctx.compile_seconds = {n: renders.render(ctx.scene, integ, 1, seed).seconds
+                           for n, integ in ctx.integrators.items()}
+
+
+def render_ladder(ctx) -> None:
+    """K renders per estimator on every rung of the plan's spp ladder
+    (resumable: sweeps.py keeps finished rungs)."""
+    _compile(ctx)
+    ctx.units = sweeps.run(ctx)
+
+
+def render_seeds(ctx) -> None:
+    """K renders per estimator at the plan's spp (the case's seed stream)."""
+    _compile(ctx)
+    spp, k = ctx.plan.spp, ctx.plan.seeds
+    ctx.units = {spp: sweeps.interleaved(
+        ctx.scene, ctx.integrators, dict.fromkeys(ctx.integrators, spp), k,
+        ctx.seeds(ctx.streams["renders"]).take(k), ctx.run.step, ctx.label)}
+
+
+def _fresh(ctx, name: str) -> np.ndarray:
+    """K new renders of one estimator (the context's replication stream)."""
+    spp, k = ctx.plan.spp, ctx.plan.seeds
+    return sweeps.interleaved(ctx.scene, {name: ctx.integrators[name]}, {name: spp}, k,
+                              ctx.seeds(ctx.streams["replication"]).take(k))[name].images
+
+
+# ---------------------------------- Reference -----------------------------------
+
+def build_reference(ctx) -> None:
+    """`path` until its standard error is a fraction of the smallest error it is
+    compared against: the least noisy render stack of a scene comparison, or
+    `path`'s own in a failure case (where the other stacks' tails would set no
+    useful target)."""
+    stacks = [u.images for by_name in ctx.units.values() for n, u in by_name.items()
+              if not ctx.is_case or n == REFERENCE]
+    target = references.target_for(stacks, ctx.run.profile.reference_fraction)
+    ctx.reference = references.ensure(ctx, target)
+
+
+# ------------------------------ Scene statistics --------------------------------
+
+def measure(ctx) -> None:
+    """Per estimator: metrics per rung, the pooled unbiasedness test,
+    convergence (:mod:`analysis`)."""
+    ladder, ref = ctx.plan.ladder, ctx.reference
+    for name in ctx.integrators:
+        runs = [analysis.run_stats(ctx.units[spp][name], ref) for spp in ladder]
+        stacks = {spp: ctx.units[spp][name].images for spp in ladder}
+        ctx.measured[name] = EstimatorResult(
+            name, ctx.params, ctx.compile_seconds[name], runs,
+            analysis.unbiasedness(stacks, ref, runs, ALPHA), analysis.convergence(runs))
+
+
+def judge_scene(ctx) -> None:
+    ctx.checks = checks.run(checks.SCENE, ctx, ctx.units, ctx.reference)
+
+
+def equal_time(ctx) -> None:
+    """Predict a ranking at a common time budget, then render each estimator at
+    the spp that fits in it and measure (:func:`analysis.equal_time_plan`)."""
+    plan = analysis.equal_time_plan({n: e.runs for n, e in ctx.measured.items()})
+    if plan is None:
+        return
+    plan.spp = {n: min(s, 4 * ctx.plan.ladder[-1]) for n, s in plan.spp.items()}
+    k = max(4, ctx.plan.renders // 2)
+    ctx.equal_units = sweeps.interleaved(ctx.scene, ctx.integrators, plan.spp, k,
+                                         ctx.seeds("equal_time").take(k), ctx.run.step,
+                                         "equal time")
+    ctx.equal_time = analysis.equal_time_measure(plan, ctx.equal_units, ctx.reference)
+
+
+def save_images(ctx) -> None:
+    """images/<scene>/: the reference and its variance; per estimator one
+    render and the K-render mean at the top spp, and one equal-time render."""
+    d, ref = ctx.images_dir, ctx.reference
+    files.write_exr(f"{d}/reference.exr", ref.mean.astype(np.float32),
+                    {"spp": ref.spp, "passes": ref.passes})
+    files.write_exr(f"{d}/reference_variance.exr", ref.variance_of_mean.astype(np.float32),
+                    {"passes": ref.passes})
+    rung = len(ctx.plan.ladder) - 1
+    top = ctx.plan.ladder[rung]
+    for name in ctx.measured:
+        images = ctx.units[top][name].images
+        files.write_exr(f"{d}/{name}_spp{top}.exr", images[0],
+                        {"integrator": name, "spp": top,
+                         "seed": ctx.seeds("ladder", rung).seed(0)})
+        files.write_exr(f"{d}/{name}_spp{top}_mean.exr", images.mean(axis=0),
+                        {"integrator": name, "spp": top, "renders": len(images)})
+    for name, unit in ctx.equal_units.items():
+        files.write_exr(f"{d}/{name}_equal_time.exr", unit.images[0],
+                        {"integrator": name, "spp": unit.spp,
+                         "seed": ctx.seeds("equal_time").seed(0),
+                         "render_seconds": float(unit.seconds[0])})
+
+
+def scene_result(ctx) -> SceneResult:
+    ref, info = ctx.reference, ctx.info
+    return SceneResult(
+        ctx.id, os.path.relpath(info.path, os.getcwd()), info.summary, ctx.res, ctx.max_depth,
+        list(ctx.plan.ladder), ctx.plan.renders,
+        ReferenceSummary(REFERENCE, ref.spp, ref.passes, ref.spp_per_pass, ref.seconds,
+                         ref.cached_passes, ref.meta.get("rendered_passes", 0),
+                         ref.meta.get("target_variance", 0.0),
+                         float(ref.variance_of_mean.mean()), ref.capped, ref.key),
+        list(ctx.measured.values()), ctx.equal_time)
+
+
+# ------------------------------- Failure cases ----------------------------------
+
+def tail_numbers(ctx) -> None:
+    """Per estimator: per-render relMSE percentiles, fireflies, NaN/Inf and
+    negative values, spp to match `path` (:mod:`tails`)."""
+    spp, k = ctx.plan.spp, ctx.plan.seeds
+    units, r = ctx.units[spp], ctx.reference.mean[..., :3]
+    path_rel = tails.per_render_relmse(units[REFERENCE].images, r)
+    for name in ctx.estimators:
+        row = CaseRow(name, refused=name in ctx.refused)
+        if name in ctx.refused:
+            row.message = _refusal_message(ctx.refused[name])
+        ctx.rows[name] = row
+        if name not in units:
+            continue
+        x = units[name].images[..., :3].astype(np.float64)
+        per = tails.per_render_relmse(x, r)
+        bad = tails.bad_values(x)
+        ratio = float(x.mean() / r.mean()) if r.mean() > 0 else None
+        row.numbers = TailNumbers(
+            tails.percentiles(per), tails.firefly_fraction(x, r), k * spp, k,
+            float(np.median(units[name].seconds)), ratio,
+            None if row.refused else tails.spp_to_match(per, path_rel, spp),
+            nonfinite_values=bad[0], negative_values=bad[1], tail_ratio=tails.tail_ratio(per))
+        if row.refused:      # biased by the user's choice: what is missing
+            row.numbers.missing_fraction = 1.0 - ratio
+
+
+def _refusal_message(error: UnreachableContentError) -> str:
+    return (f"integrator '{error.integrator}' cannot render this scene without bias: "
+            + "; ".join(str(p) for p in error.problems))
+
+
+def test_bias(ctx) -> None:
+    """The batch-means test of each estimator's K renders against the
+    reference; a rejection is tested again on K fresh renders."""
+    units = ctx.units[ctx.plan.spp]
+    for name, row in ctx.rows.items():
+        n = row.numbers
+        if n is None or row.refused or n.nonfinite_values or n.negative_values:
+            continue
+        n.test = _replicated_test(ctx, name, units[name].images)
+
+
+def _replicated_test(ctx, name: str, x: np.ndarray) -> BatchTest:
+    return statistics.replicated_compare(x[..., :3], ctx.reference.moments(),
+                                         lambda: _fresh(ctx, name)[..., :3], ALPHA)
+
+
+def split_sun(ctx) -> None:
+    """Heavy-tail cases on a map with a sun: estimators whose rejection
+    replicated are tested again on the map without its sun (rendering is
+    linear in the map, envmaps/sun.py), with the sun's facts and the number
+    of direct hits each estimator expects, N·Ω·max p."""
+    failed = [n for n, row in ctx.rows.items()
+              if row.numbers and row.numbers.test and row.numbers.test.replicated]
+    if not failed or ctx.plan.group != "heavy_tail" or "envmap" not in ctx.resolved:
+        return
+    sunless_path, facts = sun.without_sun(ctx.resolved["envmap"])
+    sub = ctx.derive([*failed, REFERENCE], label=f"{ctx.id} sunless",
+                     streams={"renders": "sunless", "replication": "sunless_replication"},
+                     envmap=sunless_path)
+    for stage in (load, choose_estimators, render_seeds, build_reference):
+        stage(sub)
+    samples = ctx.plan.seeds * ctx.plan.spp
+    sunless_mean = float(sub.reference.mean[..., :3].mean())
+    image_mean = float(ctx.reference.mean[..., :3].mean())
+    for name in failed:
+        test = _replicated_test(sub, name, sub.units[ctx.plan.spp][name].images)
+        ctx.rows[name].numbers.sun = SunSplit(
+            facts, test.passed or not test.replicated, test.test, sunless_mean,
+            expected_sun_hits(name, samples, facts["solid_angle"]),
+            1.0 - sunless_mean / image_mean)
+
+
+def expected_sun_hits(name: str, samples: int, solid_angle: float) -> float | None:
+    """Direct hits on a sun of ``solid_angle`` that estimator ``name`` expects
+    in ``samples`` samples of a pixel, at most N·Ω·max p (None: unbounded,
+    its registry facts give no largest pdf)."""
+    pdf = registry.facts(name).max_direction_pdf
+    return None if pdf is None else samples * solid_angle * pdf
+
+
+def judge_case(ctx) -> None:
+    for row in ctx.rows.values():
+        row.verdict = checks.case_verdict(row)
+    ctx.checks = checks.run(checks.CASE, ctx, ctx.units, ctx.reference)
+
+
+def _evidence(ctx, name: str, x: np.ndarray, per: np.ndarray) -> dict:
+    """The median-error and worst-error renders of one estimator, as EXR."""
+    order = np.argsort(per)
+    out = {}
+    for label, k in (("median", order[len(order) // 2]), ("worst", order[-1])):
+        out[label] = f"{name}_{label}.exr"
+        files.write_exr(f"{ctx.images_dir}/{out[label]}", x[k].astype(np.float32),
+                        {"integrator": name, "seed_index": int(k), "relmse": float(per[k])})
+    return out
+
+
+def save_evidence(ctx) -> None:
+    """failures/<case>/: the reference, and each rendering estimator's
+    median- and worst-error seed."""
+    r = ctx.reference.mean[..., :3]
+    meta = {"spp": ctx.reference.spp, **{k: v for k, v in ctx.defines.items()
+                                         if ctx.plan.sweep and k == ctx.plan.sweep[0]}}
+    files.write_exr(f"{ctx.images_dir}/reference.exr", r.astype(np.float32), meta)
+    for name, unit in ctx.units[ctx.plan.spp].items():
+        x = unit.images[..., :3].astype(np.float64)
+        images = _evidence(ctx, name, x, tails.per_render_relmse(x, r))
+        if name in ctx.rows:
+            ctx.rows[name].images = images
+
+
+def case_result(ctx) -> CaseResult:
+    p = ctx.plan
+    return CaseResult(p.id, p.group, p.label or p.scene, p.scene, dict(p.defines), p.res,
+                      p.spp, p.seeds, p.max_depth, ctx.info.summary,
+                      list(ctx.rows.values()),
+                      reference=CaseReference(ctx.reference.spp, ctx.reference.capped))
+
+
+# ------------------------------- Parameter sweeps -------------------------------
+
+def sweep_rows(ctx, points: list) -> None:
+    """Per estimator, relMSE (mean over seeds) and median seconds at every
+    point of the sweep; evidence images at the last (narrowest) point."""
+    save_evidence(points[-1])
+    ctx.info = points[-1].info
+    for name in points[-1].integrators:
+        rel = [p.rows[name].numbers.relmse.mean for p in points]
+        secs = [p.rows[name].numbers.seconds_median for p in points]
+        bad = sum(p.rows[name].numbers.nonfinite_values + p.rows[name].numbers.negative_values
+                  for p in points)
+        ctx.sweep_rows.append(SweepRow(
+            name, rel, secs, rel[-1] / rel[0] if rel[0] > 0 else None, bad,
+            points[-1].rows[name].images, "fine" if bad == 0 else "non-finite/negative"))
+
+
+def judge_sweep(ctx) -> None:
+    ctx.checks = checks.run(checks.SWEEP, ctx, None, None)
+
+
+def sweep_result(ctx) -> CaseResult:
+    p = ctx.plan
+    return CaseResult(p.id, p.group, p.label or p.scene, p.scene, dict(p.defines), p.res,
+                      p.spp, p.seeds, p.max_depth, ctx.info.summary, ctx.sweep_rows,
+                      sweep=Sweep(p.sweep[0], list(p.sweep[1])))
