@@ -30,6 +30,8 @@ from . import probes, procedural, safety, sun_sky
 class ParameterError(safety.EnvmapError):
     """A generator parameter that does not exist or has a bad value."""
 
+    usage = True
+
 
 @dataclass(frozen=True)
 class Entry:
@@ -70,6 +72,19 @@ def entries() -> dict[str, Entry]:
            for name, e in m["probes"].items()}
     out.update(PROCEDURAL)
     return out
+
+
+def listing() -> str:
+    """Every map with its kind, description, licence and closed form (if any)."""
+    rows = entries()
+    width = max(len(n) for n in rows)
+    lines = []
+    for name, entry in rows.items():
+        lines.append(f"{name:<{width}}  {entry.kind:<10}  {entry.description}")
+        lines.append(f"{'':<{width}}  licence: {entry.licence}")
+        if entry.closed_form:
+            lines.append(f"{'':<{width}}  exact: {entry.closed_form}")
+    return "\n".join(lines)
 
 
 # ----------------------------- Generator parameters -----------------------------

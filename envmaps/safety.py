@@ -25,11 +25,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mcillum.errors import UserError
+
 POLICIES = ("clamp", "strict")
 DEFAULT_POLICY = "clamp"
 
 
-class EnvmapError(ValueError):
+class EnvmapError(UserError, ValueError):
     """An environment map is missing, unreadable or has refused values."""
 
 

@@ -29,6 +29,9 @@ import mitsuba as mi
 #: Every kind of :class:`Problem`: what a continuous pdf over the reflection
 #: hemisphere cannot reach (estimators declare which they reach anyway).
 KINDS = ("delta_emitter", "delta_bsdf", "transmission", "medium")
+#: Each kind in words.
+KIND_NAMES = {"delta_emitter": "delta lights", "delta_bsdf": "delta BSDF lobes",
+              "transmission": "transmission", "medium": "participating media"}
 
 
 @dataclass(frozen=True)

@@ -24,6 +24,8 @@ from contextlib import contextmanager
 
 import numpy as np
 
+from .errors import UsageError
+
 #: Prefix of every temporary file mcillum writes.
 PARTIAL = ".partial-mcillum-"
 #: Prefix of the custom EXR header attributes mcillum writes.
@@ -181,7 +183,7 @@ def read_exr(path: str | os.PathLike, layer: str = "") -> tuple[np.ndarray, dict
 
 # ------------------------------ Output paths ----------------------------------
 
-class OutputPathError(ValueError):
+class OutputPathError(UsageError, ValueError):
     """An output path that cannot be written (said before any work is done)."""
 
 

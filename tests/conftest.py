@@ -65,6 +65,29 @@ def small(variant: str, scalar: int, vectorized: int) -> int:
     return scalar if variant.startswith("scalar") else vectorized
 
 
+def tiny_scene(**items):
+    """A 2x2 camera looking down at whatever ``items`` add."""
+    return mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 40,
+                   "to_world": mi.ScalarTransform4f().look_at(
+                       origin=[0, 3, 3], target=[0, 0, 0], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 2, "height": 2,
+                            "rfilter": {"type": "box"}}},
+        **items,
+    })
+
+
+def disk(bsdf):
+    return {"type": "disk", "to_world": mi.ScalarTransform4f().rotate([1, 0, 0], -90),
+            "bsdf": bsdf}
+
+
+def render(scene, name, **params):
+    """One 2-spp render of ``scene`` with integrator ``name``."""
+    return renders.render(scene, renders.make_integrator(name, params), spp=2)
+
+
 def batch(scene, integrator, spp: int, k: int, first_seed: int = 0) -> np.ndarray:
     """K independent renders (seeds first_seed … first_seed+k-1), (K, H, W, C)."""
     return np.stack([renders.render(scene, integrator, spp, seed).image

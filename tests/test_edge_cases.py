@@ -1,51 +1,24 @@
-"""Geometry and numerical edge cases ("Where methods fail").
+"""Geometry and numerical edge cases: grazing views (edge_grazing), back faces
+and one-sided emitters (edge_backface), shading normals that disagree with the
+geometry (edge_shading_normals), a plate 1e-4 thick (edge_thin); 1 spp, 1×1
+and non-square films, no emission, zero-area emitters (edge_light_size).
 
-Geometry (one minimal scene each, scenes/edge_*.xml; their headers say what
-each models): grazing view angles (edge_grazing), one-sided surfaces and
-emitters seen from behind (edge_backface), shading normals that disagree with
-the geometry — a smooth-shaded octahedron and a `normalmap` BSDF —
-(edge_shading_normals), a plate 1e-4 thick (edge_thin). Numerical: 1 spp,
-1×1 and non-square films, scenes without any emission, and zero-area emitters
-(edge_light_size with $radius or $size 0).
-
-1. Robustness: every edge scene (and the degenerate parameter settings below)
-   is rendered by every estimator it declares, `path` included, at 8×8 px with
-   64 seeds (0…63, at 1, 2 or 4 spp); no value may be NaN, Inf or negative.
-   (Dr.Jit compiles one kernel per scene, film size and integrator, whatever
-   the spp and seed: 8×8 is also the size of the comparisons below, which
-   reuse these kernels; on a cold kernel cache compilation dominates.)
-
-2. Agreement with `path` on each geometry scene: validation.statistics.compare
-   — per-pixel batch-means Welch t-tests, each side's variance from its own
-   independent renders, Šidák-corrected over the P·C = 8·8·3 pixel channels
-   (α_px = 1 − (1 − α/2)^(1/192) ≈ 2.6e-5), plus a pooled image-mean test per
-   channel at α/(2C); family-wise α = statistics.ALPHA = 0.01 per comparison.
-   Estimator seeds 0…15, `path` seeds 10⁶…10⁶+15: fixed, so the outcome is
-   reproducible.
-
-   Budget: 8×8 px, 1024 spp, K = 16 renders per side. Measured false
-   rejections over 30 seed sets (set s: estimator seeds 16s…, path 10⁶+16s…;
-   the test uses set 0), 5 estimators × 4 scenes = 600 comparisons: 7
-   rejected (1.2 %, the nominal α is 1 %; Binomial(600, 0.01) ≥ 7 has
-   probability ≈ 0.4): grazing 0/150, backface 3/150, shading_normals 2/150,
-   thin 2/150; set 0 passes all 20. At 64 spp, 6 of 80 comparisons (4 seed
-   sets) were rejected, 7.5 %: grazing's rough half is heavy-tailed at
-   grazing incidence, and floor pixels of a first backface design saw the
-   area light too rarely (16 renders without a single hit: zero sample
-   variance, t → ∞); hence the budget. The 5 %-off cosine pdf (tests.conftest.wrong_pdf_integrator) was
-   rejected in 30 of 30 sets on every scene, and is rejected here.
-
-   Same test and budget for edge_light_size with a zero-area sphere light:
-   0 of 150 rejected over the same 30 seed sets (an earlier framing, whose
-   far floor saw a smaller square light only at grazing angles, was rejected
-   in 21/30 (cosine) and 20/30 (BSDF) sets: pixels without one light hit in
-   16 renders); edge_grazing at 7×3 and 3×7 (cosine vs `path`): 1 of 30
-   each, set 0 passes.
-
-3. Numerical edge cases: shapes, finiteness, non-negativity at 1 spp, 1×1 px
-   and 7×3 / 3×7 px (film size and image shape, and agreement with `path` on
-   the non-square film); exactly zero images where nothing emits; Mitsuba's
-   own behaviour with zero-area emitters, which the estimators rely on.
+1. Robustness: every edge scene (and the degenerate settings below), with
+   every estimator and `path`, 8×8 px, 64 seeds at 1, 2 or 4 spp: no NaN, Inf
+   or negative value. (8×8 is also the size of the comparisons below, which
+   reuse the compiled kernels.)
+2. Agreement with `path` on each geometry scene: statistics.compare
+   (batch-means Welch per pixel, Šidák over the 192 pixel channels, plus the
+   image mean; family-wise α = 0.01), 8×8 px, 1024 spp, 16 renders a side,
+   fixed seeds. The budget is measured: over 30 seed sets, 7 of 600
+   comparisons were rejected (1.2 % against α = 1 %; at 64 spp 7.5 %, from
+   heavy tails at grazing incidence); the zero-area sphere light 0 of 150;
+   the non-square films 1 of 30 each. The 5 %-off cosine pdf was rejected in
+   30 of 30 sets on every scene.
+3. Numerical: shapes, finiteness and non-negativity at 1 spp, 1×1 and 7×3 /
+   3×7 px (and agreement with `path` on the non-square film); exact zeros
+   where nothing emits; Mitsuba's own behaviour with zero-area emitters,
+   which the estimators rely on.
 """
 
 from __future__ import annotations
@@ -58,7 +31,7 @@ import pytest
 import mitsuba as mi
 
 from mcillum.validation import renders, scenes, statistics
-from mcillum.validation.errors import SceneError
+from mcillum.errors import SceneError
 
 from conftest import ALL_ESTIMATORS, batch, wrong_pdf_integrator
 

@@ -14,7 +14,7 @@ import mitsuba as mi
 
 from mcillum.integrators import passes
 from mcillum.validation import renders, statistics
-from mcillum.validation.errors import root_cause
+from mcillum.errors import root_cause
 
 from conftest import SCENES
 

@@ -14,29 +14,7 @@ import mitsuba as mi
 from mcillum import integrators
 from mcillum.validation import renders, statistics
 
-from conftest import ALL_ESTIMATORS, ROOT, SCENES
-
-
-def tiny_scene(**items):
-    """A 2x2 camera looking down at whatever ``items`` add."""
-    return mi.load_dict({
-        "type": "scene",
-        "sensor": {"type": "perspective", "fov": 40,
-                   "to_world": mi.ScalarTransform4f().look_at(
-                       origin=[0, 3, 3], target=[0, 0, 0], up=[0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": 2, "height": 2,
-                            "rfilter": {"type": "box"}}},
-        **items,
-    })
-
-
-def disk(bsdf):
-    return {"type": "disk", "to_world": mi.ScalarTransform4f().rotate([1, 0, 0], -90),
-            "bsdf": bsdf}
-
-
-def render(scene, name, **params):
-    return renders.render(scene, renders.make_integrator(name, params), spp=2)
+from conftest import ALL_ESTIMATORS, ROOT, SCENES, render, tiny_scene
 
 
 # ----------------------------- Registration ---------------------------------

@@ -13,31 +13,9 @@ import mitsuba as mi
 
 from mcillum.integrators import UnreachableContentError, registry
 from mcillum.validation import renders, scenes
-from mcillum.validation.errors import root_cause
+from mcillum.errors import root_cause
 
-from conftest import ALL_ESTIMATORS
-
-
-def tiny_scene(**items):
-    """A 2x2 camera looking down at whatever ``items`` add."""
-    return mi.load_dict({
-        "type": "scene",
-        "sensor": {"type": "perspective", "fov": 40,
-                   "to_world": mi.ScalarTransform4f().look_at(
-                       origin=[0, 3, 3], target=[0, 0, 0], up=[0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": 2, "height": 2,
-                            "rfilter": {"type": "box"}}},
-        **items,
-    })
-
-
-def disk(bsdf):
-    return {"type": "disk", "to_world": mi.ScalarTransform4f().rotate([1, 0, 0], -90),
-            "bsdf": bsdf}
-
-
-def render(scene, name, **params):
-    return renders.render(scene, renders.make_integrator(name, params), spp=2)
+from conftest import ALL_ESTIMATORS, disk, render, tiny_scene
 
 
 def refusal(scene, name) -> UnreachableContentError:

@@ -1,17 +1,20 @@
-"""The LLVM set-up: a plain pip install gives working llvm_* variants.
-
-Each case runs in a fresh interpreter, since Dr.Jit picks its libLLVM once per
-process at `import drjit`.
+"""Installation: a plain pip install gives working llvm_* variants (each case in
+a fresh interpreter, since Dr.Jit picks its libLLVM once per process at
+`import drjit`), and installs one import package, `mcillum`.
 """
 
 import os
+import shutil
 import subprocess
 import sys
 import textwrap
+from importlib import metadata
 
 import pytest
 
 from mcillum.integrators import _llvm
+
+from conftest import ROOT
 
 
 def run_python(code: str, **env_overrides) -> subprocess.CompletedProcess:
@@ -94,3 +97,76 @@ def test_scalar_needs_no_llvm():
         """, DRJIT_LIBLLVM_PATH="/nonexistent/libLLVM.so")
     assert result.returncode == 0, result.stderr
     assert "CosineHemisphereIntegrator" in result.stdout
+
+
+# --------------------------------- Packaging ------------------------------------
+
+def _site_packages(python: str) -> str:
+    return subprocess.run([python, "-c", "import sysconfig; print(sysconfig.get_paths()"
+                           "['purelib'])"], capture_output=True, text=True,
+                          check=True).stdout.strip()
+
+
+def test_install_adds_one_package_and_its_scenes(tmp_path):
+    """`pip install .` into a fresh venv adds exactly `mcillum` and its
+    dist-info to site-packages; the installed package, run from elsewhere,
+    finds its scenes and plugins. Offline: the wheel is built without build
+    isolation and installed from the file (never `pip install --prefix` from
+    this environment: pip would first uninstall this checkout's own install)."""
+    build = tmp_path / "src"                       # a copy: the build leaves files behind
+    shutil.copytree(ROOT, build, ignore=shutil.ignore_patterns(
+        ".venv", ".git", "out", "build", "*.egg-info", "__pycache__", ".pytest_cache"))
+    done = subprocess.run([sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps",
+                           "--no-build-isolation", "--no-index", "-w", str(tmp_path / "dist"),
+                           str(build)], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stdout + done.stderr
+    (wheel,) = (tmp_path / "dist").glob("mcillum-*.whl")
+    venv = tmp_path / "venv"
+    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True, timeout=300)
+    python = str(venv / "bin" / "python")
+    site = _site_packages(python)
+    before = set(os.listdir(site))
+    done = subprocess.run([python, "-m", "pip", "install", "--quiet", "--no-deps",
+                           "--no-index", str(wheel)], capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stdout + done.stderr
+    added = set(os.listdir(site)) - before
+    version = metadata.version("mcillum")
+    assert added == {"mcillum", f"mcillum-{version}.dist-info"}, sorted(added)
+    assert {"integrators", "envmaps", "validation", "scenes"} <= set(
+        os.listdir(os.path.join(site, "mcillum")))
+    assert (venv / "bin" / "mcillum").is_file()           # the console script
+    # the dependencies come from this environment (its site-packages only:
+    # no .pth there is read, so this checkout's editable mcillum stays out)
+    result = subprocess.run([python, "-c", textwrap.dedent("""
+        import mcillum, mitsuba as mi
+        from mcillum.integrators import registry
+        from mcillum.validation import scenes
+        mi.set_variant("scalar_rgb")
+        print(mcillum.__file__)
+        print(scenes.index()["cornell_box"].path)
+        print(" ".join(registry.names()))
+        """)], cwd=tmp_path, capture_output=True, text=True, timeout=300,
+        env={**os.environ, "PYTHONPATH": _site_packages(sys.executable)})
+    assert result.returncode == 0, result.stderr
+    package, cornell, names = result.stdout.strip().splitlines()[-3:]
+    assert package.startswith(site) and cornell.startswith(site), result.stdout
+    assert "cosine_hemisphere" in names.split()
+
+
+def test_no_module_imports_the_folders_as_top_level_packages():
+    """Inside a checkout `integrators`, `envmaps` and `validation` are also
+    importable as folders; importing them so would load a second copy of every
+    plugin class. Every module imports them as mcillum.* (or relatively)."""
+    import ast
+
+    bad = []
+    for folder in ("mcillum", "integrators", "envmaps", "validation", "tests"):
+        for path in sorted((ROOT / folder).glob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+                names = ([a.name for a in node.names] if isinstance(node, ast.Import) else
+                         [node.module or ""] if isinstance(node, ast.ImportFrom)
+                         and node.level == 0 else [])
+                bad += [f"{path.relative_to(ROOT)}:{node.lineno} {n}" for n in names
+                        if n.split(".")[0] in ("integrators", "envmaps", "validation")]
+    assert not bad, bad

@@ -47,7 +47,14 @@ def test_correct_estimators_pass_and_outputs_are_complete(llvm, tiny_profile, tm
     data = json.loads((out / "results.json").read_text())
     assert code == 0, [c for c in data["checks"] if not c["passed"]]
     assert data["passed"] and len(data["scenes"]) == 2
-    jsonschema.validate(data, json.load(open(results.SCHEMA_FILE)))
+    schema = json.load(open(results.SCHEMA_FILE))
+    jsonschema.validate(data, schema)
+    assert data["version"] == results.VERSION and data["minor_version"] == results.MINOR_VERSION
+    assert list(data["estimator_facts"]) == TINY.estimator_names()
+    broken = {**data, "estimator_facts": {"x": {**data["estimator_facts"]["path"],
+                                                "colour": "grey"}}}
+    with pytest.raises(jsonschema.ValidationError):   # the schema checks the new fields
+        jsonschema.validate(broken, schema)
     for scene in data["scenes"]:
         assert [e["name"] for e in scene["estimators"]] == TINY.estimator_names()
         for est in scene["estimators"]:

@@ -1,9 +1,18 @@
 """mcillum validation: compare the estimators with Mitsuba's path tracer.
 
-The package reads top to bottom as a pipeline, one module per stage:
+Read it as the pipeline it runs; each module imports only modules above it:
 
-    scenes (scenes/*.xml) → renders → statistics → (report, later issues)
-
-``images`` holds the file formats every stage reads and writes. Modules only
-import stages above them.
+    profiles, scenes        what to run: scenes, resolutions, spp, K, failure cases
+    seeds                   which seed every render uses (disjoint named streams)
+    metrics, results        the error metrics, and the typed records of a run
+                            (with its files: results.json, csv, summary, JUnit)
+    images, renders,        one render, timed; K renders per estimator and spp
+    sweeps
+    statistics, references  batch-means tests; Mitsuba's `path` until its noise is small
+    tails, analysis         heavy tails; metrics per spp, convergence, equal time
+    checks                  every check and verdict rule
+    context, stages         one scene run or failure case, and the stages over it
+    charts, report          what people look at
+    progress, pipeline      the one orchestrator (`mcillum validate`)
+    timing, cli             `mcillum bench`, and the `mcillum` command
 """

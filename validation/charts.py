@@ -31,6 +31,16 @@ def palette(results: Results) -> dict[str, str]:
             else spare[n] for n in names}
 
 
+def _finish(fig, ax, xlabel: str, ylabel: str, title: str) -> str:
+    """Label a log-log axis, grid and legend it, and return the figure as SVG."""
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7)
+    return _svg(fig)
+
+
 def _svg(fig) -> str:
     buf = io.StringIO()
     fig.savefig(buf, format="svg", bbox_inches="tight")
@@ -53,12 +63,8 @@ def error_vs_time(scene: SceneResult, colours: dict) -> str:
     if scene.equal_time:
         ax.axvline(scene.equal_time.budget_seconds * 1e3, color="#999999", ls=":", lw=1,
                    label="equal-time budget")
-    ax.set_xlabel("wall time per render [ms]")
-    ax.set_ylabel("relMSE (ε = 0.01)")
-    ax.set_title(f"{scene.name}: accuracy vs time")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7)
-    return _svg(fig)
+    return _finish(fig, ax, "wall time per render [ms]", "relMSE (ε = 0.01)",
+                   f"{scene.name}: accuracy vs time")
 
 
 def error_vs_spp(scene: SceneResult, colours: dict) -> str:
@@ -78,12 +84,8 @@ def error_vs_spp(scene: SceneResult, colours: dict) -> str:
         s0, e0, s1 = worst
         xs = np.array([s0, s1], float)
         ax.loglog(xs, e0 * (xs / s0) ** -1.0, "k--", lw=1, label="ideal slope −1")
-    ax.set_xlabel("samples per pixel")
-    ax.set_ylabel("relMSE (ε = 0.01)")
-    ax.set_title(f"{scene.name}: convergence")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7)
-    return _svg(fig)
+    return _finish(fig, ax, "samples per pixel", "relMSE (ε = 0.01)",
+                   f"{scene.name}: convergence")
 
 
 def error_spread(scene: SceneResult, colours: dict) -> str:
@@ -96,7 +98,7 @@ def error_spread(scene: SceneResult, colours: dict) -> str:
         jitter = np.linspace(-0.15, 0.15, len(per)) if len(per) > 1 else np.zeros(1)
         ax.semilogy(i + jitter, per, "o", color=colours[est.name], ms=3, alpha=0.7)
         ax.hlines(np.median(per), i - 0.25, i + 0.25, color="k", lw=1)
-    ax.set_xticks(range(len(names)), names, fontsize=7)
+    ax.set_xticks(range(len(names)), names, fontsize=7, rotation=25, ha="right")
     ax.set_ylabel("relMSE of one render")
     ax.set_title(f"{scene.name}: error over seeds at {scene.estimators[0].top.spp} spp")
     ax.grid(True, axis="y", which="both", alpha=0.3)

@@ -1,14 +1,5 @@
-"""The ``mcillum`` command.
-
-    mcillum render SCENE.xml --integrator NAME [--spp N] [--seed S]
-                   [--param K=V ...] [--define K=V ...] [--variant V]
-                   [--exposure EV] -o OUT.exr
-    mcillum bench SCENE.xml [--integrators a,b,c] [--spp N] [--runs R] [--json F]
-    mcillum envmap NAME [-p K=V ...] [--policy clamp|strict] -o FILE.exr
-    mcillum envmap --list
-    mcillum validate [--profile quick|full] [--groups scenes failures] [--scenes ...]
-                     [--estimators ...] [--out DIR] [--junit FILE] [--cache DIR]
-    mcillum report RESULTS_DIR
+"""The ``mcillum`` command: render, bench, envmap, validate, report
+(``mcillum COMMAND --help``). It parses arguments and calls the library.
 
 Exit codes, the same rule for every subcommand: 0 success; 2 usage error, what
 the command line alone shows to be wrong (a bad option value, an unknown
@@ -27,12 +18,24 @@ import signal
 import sys
 import threading
 
-from mcillum import files
+from mcillum import errors, files
 from mcillum.envmaps import catalog, safety
 
-from . import errors, profiles, renders, results, timing
+from . import profiles, renders, results, timing
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 1, 2, 130, 143
+
+
+def _scene_arguments(p, param_help: str) -> None:
+    """SCENE, -p, -D and --variant, shared by render and bench."""
+    p.add_argument("scene", help="Mitsuba 3 XML scene file")
+    p.add_argument("--param", "-p", action="append", default=[], metavar="K=V",
+                   help=param_help)
+    p.add_argument("--define", "-D", action="append", default=[], metavar="K=V",
+                   help="scene $-parameter, e.g. res=256 (repeatable)")
+    p.add_argument("--variant", default=None,
+                   help="Mitsuba variant (default $MCILLUM_VARIANT or llvm_ad_rgb)")
+    p.add_argument("--spp", type=int, default=64, help="samples per pixel (default 64)")
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -45,40 +48,25 @@ def _parser() -> argparse.ArgumentParser:
         "render", help="render a Mitsuba XML scene with one integrator",
         description="Render SCENE with an mcillum estimator (or any Mitsuba integrator) "
                     "to a float32 EXR with metadata, plus a tone-mapped PNG beside it.")
-    r.add_argument("scene", help="Mitsuba 3 XML scene file")
+    _scene_arguments(r, "integrator property, e.g. max_depth=2 (repeatable)")
     r.add_argument("--integrator", "-i", required=True,
                    help="integrator plugin, e.g. cosine_hemisphere, uniform_hemisphere, path")
-    r.add_argument("--spp", type=int, default=64, help="samples per pixel (default 64)")
     r.add_argument("--seed", type=int, default=0, help="sampler seed (default 0)")
-    r.add_argument("--param", "-p", action="append", default=[], metavar="K=V",
-                   help="integrator property, e.g. max_depth=2 (repeatable)")
-    r.add_argument("--define", "-D", action="append", default=[], metavar="K=V",
-                   help="scene $-parameter, e.g. res=128 (repeatable)")
-    r.add_argument("--variant", default=None,
-                   help="Mitsuba variant (default $MCILLUM_VARIANT or llvm_ad_rgb)")
     r.add_argument("--exposure", type=float, default=0.0,
                    help="exposure of the PNG preview in stops (default 0)")
     r.add_argument("--output", "-o", required=True, help="output .exr path")
-    r.set_defaults(run=_render, subparser=r)
 
     b = sub.add_parser(
         "bench", help="time integrators against each other on one scene",
         description="Render SCENE once per integrator (compile), then RUNS interleaved "
                     "warm rounds; print median warm times and ratios to the first "
                     "integrator, and optionally write them as JSON.")
-    b.add_argument("scene", help="Mitsuba 3 XML scene file")
+    _scene_arguments(b, "property given to every integrator, e.g. max_depth=8")
     b.add_argument("--integrators", default="path,uniform_hemisphere,cosine_hemisphere",
                    help="comma-separated plugin names; ratios are to the first "
                         "(default path,uniform_hemisphere,cosine_hemisphere)")
-    b.add_argument("--spp", type=int, default=64, help="samples per pixel (default 64)")
     b.add_argument("--runs", type=int, default=5, help="warm rounds (default 5)")
-    b.add_argument("--param", "-p", action="append", default=[], metavar="K=V",
-                   help="property given to every integrator, e.g. max_depth=8")
-    b.add_argument("--define", "-D", action="append", default=[], metavar="K=V",
-                   help="scene $-parameter, e.g. res=256")
-    b.add_argument("--variant", default=None, help="Mitsuba variant")
     b.add_argument("--json", default=None, metavar="FILE", help="also write results here")
-    b.set_defaults(run=_bench, subparser=b)
 
     e = sub.add_parser(
         "envmap", help="list, generate or check environment maps",
@@ -92,19 +80,17 @@ def _parser() -> argparse.ArgumentParser:
                    help="NaN/Inf/negative policy for files (default clamp: negatives → 0, "
                         "NaN/Inf refused)")
     e.add_argument("--output", "-o", help="output .exr path")
-    e.set_defaults(run=_envmap, subparser=e)
 
     v = sub.add_parser(
         "validate", help="compare the estimators with Mitsuba's path tracer",
-        description="Render each scene of a profile with every estimator over an spp "
-                    "ladder, build an adaptive `path` reference, test unbiasedness, fit "
-                    "convergence, compare at equal time, and drive every estimator into "
-                    "the cases where it fails; write results.json, results.csv, "
+        description="Compare every estimator with an adaptive `path` reference on the "
+                    "profile's scenes (unbiasedness, convergence, equal time) and drive "
+                    "each into the cases where it fails; write results.json, results.csv, "
                     "summary.md, images and the report to --out. Exit 0 if every check "
                     "passes, 1 if one fails, 2 on usage errors.")
     v.add_argument("--profile", choices=sorted(profiles.PROFILES), default="quick")
-    v.add_argument("--groups", nargs="+", choices=("scenes", "failures"),
-                   default=["scenes", "failures"],
+    v.add_argument("--groups", nargs="+", choices=profiles.GROUPS,
+                   default=list(profiles.GROUPS),
                    help="run the scene comparisons and/or the failures group (default both)")
     v.add_argument("--scenes", nargs="+", metavar="SCENE",
                    help="subset of the profile's scenes (filters both groups)")
@@ -116,19 +102,18 @@ def _parser() -> argparse.ArgumentParser:
     v.add_argument("--cache", metavar="DIR", help="reference cache (default $MCILLUM_CACHE "
                                                   "or ~/.cache/mcillum)")
     v.add_argument("--variant", default=None, help="Mitsuba variant")
-    v.set_defaults(run=_validate, subparser=v)
 
     rp = sub.add_parser(
         "report", help="(re)write the HTML report of an existing validation run",
         description="Read RESULTS_DIR/results.json and its images and write "
                     "RESULTS_DIR/report/index.html (self-contained) and summary.md.")
     rp.add_argument("results_dir", help="a directory written by `mcillum validate --out`")
-    rp.set_defaults(run=_report, subparser=rp)
+    for p, run in ((r, _render), (b, _bench), (e, _envmap), (v, _validate), (rp, _report)):
+        p.set_defaults(run=run, subparser=p)
     return parser
 
 
-class _Usage(Exception):
-    """A usage error found after argument parsing (exit code 2)."""
+_Usage = errors.UsageError
 
 
 def _assignments(items) -> dict:
@@ -140,9 +125,14 @@ def _assignments(items) -> dict:
 
 # --------------------------------- Commands ------------------------------------
 
+def _exr_output(path: str) -> None:
+    if not path.lower().endswith(".exr"):
+        raise _Usage(f"output must be an .exr path, got '{path}'")
+    files.check_output(path)
+
+
 def _render(args) -> int:
-    if not args.output.lower().endswith(".exr"):
-        raise _Usage(f"output must be an .exr path, got '{args.output}'")
+    _exr_output(args.output)
     if args.spp < 1:
         raise _Usage(f"--spp must be >= 1, got {args.spp}")
     if not 0 <= args.seed < 2 ** 32:
@@ -150,7 +140,6 @@ def _render(args) -> int:
                      f"unsigned), got {args.seed}")
     params, defines = _assignments(args.param), _assignments(args.define)
     png = os.path.splitext(args.output)[0] + ".png"
-    files.check_output(args.output)
     files.check_output(png, "the PNG preview")
     files.remove_stale_partials(os.path.dirname(os.path.abspath(args.output)))
 
@@ -196,21 +185,13 @@ def _bench(args) -> int:
 
 def _envmap(args) -> int:
     if args.list:
-        rows = catalog.entries()
-        width = max(len(n) for n in rows)
-        for name, entry in rows.items():
-            print(f"{name:<{width}}  {entry.kind:<10}  {entry.description}")
-            print(f"{'':<{width}}  licence: {entry.licence}")
-            if entry.closed_form:
-                print(f"{'':<{width}}  exact: {entry.closed_form}")
+        print(catalog.listing())
         return EXIT_OK
     if not args.name:
         raise _Usage("give a map NAME (or --list)")
     if not args.output:
         raise _Usage("give an output path with -o FILE.exr")
-    if not args.output.lower().endswith(".exr"):
-        raise _Usage(f"output must be an .exr path, got '{args.output}'")
-    files.check_output(args.output)
+    _exr_output(args.output)
     rgb, report = catalog.load(args.name, args.policy, **_assignments(args.param))
     files.write_exr(args.output, rgb)
     h, w = rgb.shape[:2]
@@ -223,12 +204,7 @@ def _validate(args) -> int:
     # other commands do not need)
     from . import pipeline
 
-    profile = profiles.PROFILES[args.profile]
-    known = {r.scene for r in profile.runs} | {c.scene for c in profile.failures}
-    for name in args.scenes or []:
-        if name not in known:
-            raise _Usage(f"scene '{name}' is not in profile '{args.profile}' "
-                         f"({', '.join(sorted(known))})")
+    profiles.PROFILES[args.profile].check_scenes(args.scenes or [])
     files.make_dir(args.out, "--out")
     if args.junit:
         files.check_output(args.junit, "--junit")
@@ -249,55 +225,30 @@ def _validate(args) -> int:
 def _report(args) -> int:
     from . import report  # (matplotlib: see _validate)
 
-    if not os.path.isfile(os.path.join(args.results_dir, "results.json")):
-        raise _Usage(f"no results.json in {args.results_dir}: run `mcillum validate "
-                     f"--out {args.results_dir}` first")
     res = results.load(args.results_dir)
     files.check_writable_dir(args.results_dir)
-    try:
-        print(report.build(args.results_dir, res))
-    except FileNotFoundError as err:
-        raise errors.UserError(
-            f"{err.filename or err} is missing (the report needs every image of the run): "
-            f"run `mcillum validate --out {args.results_dir}` again") from None
+    print(report.build(args.results_dir, res))
     return EXIT_OK
 
 
 # ---------------------------------- Entry --------------------------------------
 
-class _Terminated(KeyboardInterrupt):
-    """SIGTERM, delivered as an interrupt so that every clean-up path runs."""
-
-
-def _on_sigterm(signum, frame):
-    raise _Terminated()
-
-
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
-    in_main = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGTERM, _on_sigterm) if in_main else None
-    try:
+    with errors.sigterm_as_interrupt():
         return _run(args)
-    finally:
-        if in_main:
-            signal.signal(signal.SIGTERM, previous)
 
 
 def _run(args) -> int:
     name = f"mcillum {args.command}"
     try:
         return args.run(args)
-    except (_Usage, files.OutputPathError, catalog.ParameterError) as err:
-        args.subparser.error(str(err))  # exits with 2
     except errors.UserError as err:
         if err.usage:
-            args.subparser.error(str(err))
+            args.subparser.error(str(err))  # exits with 2
         print(f"{name}: error: {err}", file=sys.stderr)
     except errors.Interrupted as err:
         return _stopped(name, err.__context__, f": {err}")
-    except (safety.EnvmapError, results.ResultsError) as err:
-        print(f"{name}: error: {err}", file=sys.stderr)
     except (KeyboardInterrupt, Exception) as err:  # the real cause, not Dr.Jit's wrapper
         if errors.is_interrupt(err):
             return _stopped(name, err, "; no partial output files are left")
@@ -306,7 +257,7 @@ def _run(args) -> int:
 
 
 def _stopped(name: str, cause, what: str) -> int:
-    terminated = isinstance(errors.root_cause(cause), _Terminated) if cause else False
+    terminated = isinstance(errors.root_cause(cause), errors.Terminated) if cause else False
     print(f"{name}: {'terminated (SIGTERM)' if terminated else 'interrupted'}{what}",
           file=sys.stderr)
     return EXIT_TERMINATED if terminated else EXIT_INTERRUPTED

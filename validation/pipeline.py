@@ -26,11 +26,11 @@ import drjit as dr
 import mitsuba as mi
 
 from mcillum import files
+from mcillum.errors import Interrupted
 from mcillum.integrators import registry
 
 from . import profiles, renders, report, results, stages, statistics
 from .context import Context, Run
-from .errors import Interrupted
 from .progress import Progress
 
 SCENE = (stages.load, stages.choose_estimators, stages.render_ladder, stages.build_reference,
@@ -41,8 +41,6 @@ CASE = (stages.load, stages.probe_refusals, stages.render_seeds, stages.build_re
 SWEEP_POINT = (stages.load, stages.choose_estimators, stages.render_seeds,
                stages.build_reference, stages.tail_numbers)
 
-GROUPS = ("scenes", "failures")
-
 
 def run_stages(stage_list, ctx: Context) -> Context:
     for stage in stage_list:
@@ -50,13 +48,18 @@ def run_stages(stage_list, ctx: Context) -> Context:
     return ctx
 
 
-def compare_scene(run: Run, plan: profiles.SceneRun, estimators) -> results.SceneResult:
+def compare_scene(run: Run, plan: profiles.SceneRun,
+                  estimators) -> tuple[results.SceneResult, list[results.Check]]:
+    """One scene of the profile: its result and its checks."""
     ctx = run_stages(SCENE, Context(run, plan, plan.scene, list(estimators),
                                     dict(plan.defines), label=plan.scene))
     return stages.scene_result(ctx), ctx.checks
 
 
-def failure_case(run: Run, plan: profiles.FailureCase, estimators) -> results.CaseResult:
+def failure_case(run: Run, plan: profiles.FailureCase,
+                 estimators) -> tuple[results.CaseResult, list[results.Check]]:
+    """One case of the failures group (a sweep: every point of it): its
+    result and its checks."""
     ctx = Context(run, plan, plan.id, list(estimators), dict(plan.defines), label=plan.id)
     if not plan.sweep:
         run_stages(CASE, ctx)
@@ -72,11 +75,11 @@ def failure_case(run: Run, plan: profiles.FailureCase, estimators) -> results.Ca
 def validate(profile_name: str = "quick", scene_names=None, estimators=None,
              out_dir: str = "out/validate", cache_dir: str | None = None,
              variant: str | None = None, progress: bool | None = None,
-             groups=GROUPS) -> results.Results:
+             groups=profiles.GROUPS) -> results.Results:
     """Run a profile: its scene comparisons and/or its failures group
     (``groups``), filtered by scene name; write the results and the report.
 
-    Ctrl-C raises :class:`~.errors.Interrupted` saying what was left and what
+    Ctrl-C raises :class:`mcillum.errors.Interrupted` saying what was left and what
     to do (finished renders are kept and reused by the next run).
     """
     profile = profiles.PROFILES[profile_name]

@@ -1,17 +1,23 @@
-"""What `mcillum validate` runs: scenes, resolutions, spp ladders, K.
+"""What `mcillum validate` runs: scenes, resolutions, spp ladders, K, and the
+cases of the failures group.
 
-``quick`` is for CI and a first look (about 3 minutes on 2 cores with cold
+``quick`` is for CI and a first look (about 2 minutes on 2 cores with cold
 caches); ``full`` is for publication-quality charts. Budgets per scene follow
 what its statistics need: the Cornell box's small light must be hit in every
 pixel of every render before a per-pixel variance means anything (see
-tests/test_against_path.py), so it gets few pixels and many samples.
+tests/test_agreement.py), so it gets few pixels and many samples. A profile
+compares every registered estimator unless it names its own list.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from mcillum.errors import UsageError
 from mcillum.integrators import registry
+
+#: The two groups of a profile: scene comparisons and the failures group.
+GROUPS = ("scenes", "failures")
 
 
 @dataclass(frozen=True)
@@ -59,6 +65,14 @@ class Profile:
         if self.estimators is not None:
             return list(self.estimators)
         return [*registry.names(), registry.REFERENCE]
+
+    def check_scenes(self, names) -> None:
+        """Raise UsageError for a scene name the profile does not run."""
+        known = {r.scene for r in self.runs} | {c.scene for c in self.failures}
+        for name in names:
+            if name not in known:
+                raise UsageError(f"scene '{name}' is not in profile '{self.name}' "
+                                 f"({', '.join(sorted(known))})")
 
 
 #: Geometry edge cases (grazing views, back faces, shading normals, thin plates).

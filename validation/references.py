@@ -194,7 +194,7 @@ def ensure(ctx, target: float) -> Reference:
     profile = ctx.run.profile
     spp_per_pass, max_spp = profile.reference_spp_per_pass, profile.reference_max_spp
     max_seconds, cache_dir = profile.reference_max_seconds, ctx.run.cache_dir
-    key = cache_key(ctx.info.path, ctx.resolved, ctx.params, ctx.run.variant)
+    key = ctx.scene_key                   # cache_key(), computed when the scene loaded
     ref = load(cache_dir, key)
     if ref is not None and ref.spp_per_pass != spp_per_pass:
         ref = None  # a different pass size would mix batch sizes

@@ -23,8 +23,8 @@ from mcillum import envmaps, files, integrators
 from mcillum.integrators import passes, registry
 
 from . import images, scenes
-from .errors import IntegratorError, SceneError, message, plugin_not_found
-from .errors import unreferenced_properties, unused_defines
+from mcillum.errors import IntegratorError, SceneError, message, plugin_not_found
+from mcillum.errors import unreferenced_properties, unused_defines
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
 

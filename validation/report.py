@@ -24,6 +24,8 @@ import matplotlib.image
 import numpy as np
 
 from mcillum import files
+from mcillum.errors import UserError
+from mcillum.integrators.scene_checks import KIND_NAMES
 
 from . import charts, images, metrics, results, tails
 from .results import CaseResult, Results, SceneResult
@@ -286,7 +288,7 @@ def _estimators(res: Results, colours: dict) -> str:
     """The estimators of the run: name, what they are, what they cannot reach."""
     rows = "".join(
         f"<tr><td>{_swatch(name, colours)}</td><td>{html.escape(f.display_name)}</td>"
-        f"<td>{html.escape(', '.join(k.replace('_', ' ') for k in f.unreachable))}</td></tr>"
+        f"<td>{html.escape(', '.join(KIND_NAMES.get(k, k) for k in f.unreachable))}</td></tr>"
         for name, f in res.estimator_facts.items())
     return ("<table><tr><th>estimator</th><th>what it is</th><th>refuses scenes with</th>"
             f"</tr>{rows}</table>") if rows else ""
@@ -309,6 +311,14 @@ def build(run_dir: str, res: Results | None = None) -> str:
     """Write ``run_dir/report/index.html`` and ``summary.md`` from ``res`` (read
     from ``run_dir/results.json`` when not given); return the HTML path."""
     res = res if res is not None else results.load(run_dir)
+    try:
+        return _write(run_dir, res)
+    except FileNotFoundError as err:
+        raise UserError(f"{err.filename or err} is missing (the report needs every image "
+                        f"of the run): run `mcillum validate --out {run_dir}` again") from None
+
+
+def _write(run_dir: str, res: Results) -> str:
     colours = charts.palette(res)
     checks, failed = res.checks, len(res.failed)
     m = res.machine

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from xml.sax.saxutils import escape, quoteattr
 
 from mcillum import files
+from mcillum.errors import UserError
 
 from . import metrics
 
@@ -416,8 +417,14 @@ def from_json(cls, data: dict):
     return record
 
 
-class ResultsError(ValueError):
-    """results.json is missing, unreadable, of another version, or incomplete."""
+class ResultsError(UserError, ValueError):
+    """results.json is unreadable, of another version, or incomplete."""
+
+
+class NoResultsError(ResultsError, FileNotFoundError):
+    """The directory holds no results.json (the command line names no run)."""
+
+    usage = True
 
 
 def load(run_dir: str) -> Results:
@@ -426,8 +433,8 @@ def load(run_dir: str) -> Results:
     path = os.path.join(run_dir, "results.json")
     again = f"run `mcillum validate --out {run_dir}` again"
     if not os.path.isfile(path):
-        raise FileNotFoundError(f"no results.json in {run_dir}: run `mcillum validate "
-                                f"--out {run_dir}` first")
+        raise NoResultsError(f"no results.json in {run_dir}: run `mcillum validate "
+                             f"--out {run_dir}` first")
     try:
         with open(path, encoding="utf-8") as f:
             data = json.load(f)

@@ -18,7 +18,7 @@ from mcillum.envmaps import sun
 from mcillum.integrators import UnreachableContentError, registry
 
 from . import analysis, checks, references, renders, scenes, statistics, sweeps, tails
-from .errors import root_cause
+from mcillum.errors import root_cause
 from .results import (BatchTest, CaseReference, CaseResult, CaseRow, EstimatorResult,
                       ReferenceSummary, SceneResult, SunSplit, Sweep, SweepRow, TailNumbers)
 

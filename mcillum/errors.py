@@ -1,12 +1,16 @@
 """Errors that reach a user, and Mitsuba's error text made readable.
 
 * :class:`UserError` — a mistake in what the user gave, with a message that
-  says what was wrong and what to do. ``usage`` says whether the command line
-  alone shows it (exit code 2 in the CLI: an unknown integrator, a bad
-  integrator parameter, an output path that cannot be written) or it was
-  found while loading or rendering (exit code 1: a broken scene file, an
-  unknown $-parameter, a refused environment map).
-* :class:`Interrupted` — Ctrl-C or SIGTERM, with what was left and what to do.
+  says what was wrong and what to do. Every such error of mcillum derives
+  from it (bad maps and map parameters, unwritable outputs, unknown
+  integrators, broken scenes, unreadable results). ``usage`` says whether the
+  command line alone shows it (exit code 2 in the CLI: an unknown integrator
+  or parameter, an output path that cannot be written) or it was found while
+  loading or rendering (exit code 1: a broken scene file, an unknown
+  $-parameter, a refused environment map).
+* :class:`Interrupted` — Ctrl-C or SIGTERM, with what was left and what to do;
+  :func:`sigterm_as_interrupt` turns SIGTERM into a KeyboardInterrupt
+  (:class:`Terminated`), so that every clean-up path of Ctrl-C runs for it too.
 * :func:`message` — the innermost cause of an exception as one line: Mitsuba
   wraps a plugin's error in "At dictionary node …", source locations and the
   Python traceback of the plugin; only the cause is kept.
@@ -15,12 +19,21 @@
 from __future__ import annotations
 
 import re
+import signal
+import threading
+from contextlib import contextmanager
 
 
 class UserError(Exception):
     """A mistake in the user's input; the message says what to do."""
 
     usage = False
+
+
+class UsageError(UserError):
+    """A mistake the command line alone shows."""
+
+    usage = True
 
 
 class IntegratorError(UserError):
@@ -35,6 +48,28 @@ class SceneError(UserError):
 
 class Interrupted(Exception):
     """Ctrl-C or SIGTERM, with what was left and what to do."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised as an interrupt (see :func:`sigterm_as_interrupt`)."""
+
+
+def _raise_terminated(signum, frame):
+    raise Terminated()
+
+
+@contextmanager
+def sigterm_as_interrupt():
+    """While inside, SIGTERM raises :class:`Terminated` in the main thread
+    (elsewhere nothing changes); the previous handler comes back on exit."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def root_cause(exc: BaseException) -> BaseException:
