@@ -4,7 +4,7 @@ PYTHON ?= python3
 VENV   ?= .venv
 BIN     = $(VENV)/bin
 
-.PHONY: validate render test browser clean
+.PHONY: validate render test test-slow browser clean
 
 # Main job: compare every estimator with Mitsuba's path tracer (quick profile)
 # → out/validate/{results.json,results.csv,summary.md,images/}; exit 1 if a check fails.
@@ -20,6 +20,11 @@ render: $(VENV)/.installed
 
 test: $(VENV)/.installed browser
 	$(BIN)/python -m pytest
+
+# The slow group (deselected by `make test`): long statistical sweeps, renders
+# beyond 2^32 samples, a scalar regression render. CI runs it after `make test`.
+test-slow: $(VENV)/.installed
+	$(BIN)/python -m pytest -m slow
 
 # Debian's Chromium + ChromeDriver for the report's browser test. Installed only
 # where we are root with apt (CI); elsewhere that one test is skipped.

@@ -90,6 +90,18 @@ def test_biased_estimator_fails_with_exit_1(llvm, tiny_profile, tmp_path, capsys
     assert suite.get("failures") == "1"
 
 
+def test_groups_run_one_group_only(llvm, tmp_path, monkeypatch):
+    """--groups picks the scene comparisons or the failures group."""
+    case = profiles.FailureCase("geometry", "edge_thin", 4, 4, 4)
+    monkeypatch.setitem(profiles.PROFILES, "quick", profiles.Profile(
+        "quick", TINY.runs[:1], failures=(case,), reference_max_seconds=10.0,
+        estimators=("cosine_hemisphere", "path")))
+    for group, scenes_, cases in (("failures", 0, 1), ("scenes", 1, 0)):
+        code, out = run_cli(tmp_path / group, "--groups", group)
+        data = json.loads((out / "results.json").read_text())
+        assert code == 0 and (len(data["scenes"]), len(data["failures"])) == (scenes_, cases)
+
+
 def completed(directory):
     """Finished render steps (not the temporary files of one being written)."""
     return sorted(p for p in directory.rglob("*.npz") if not p.name.startswith(".partial-"))

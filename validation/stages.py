@@ -291,8 +291,10 @@ def save_evidence(ctx) -> None:
     """failures/<case>/: the reference, and each rendering estimator's
     median- and worst-error seed."""
     r = ctx.reference.mean[..., :3]
-    meta = {"spp": ctx.reference.spp, **{k: v for k, v in ctx.defines.items()
-                                         if ctx.plan.sweep and k == ctx.plan.sweep[0]}}
+    meta = {"spp": ctx.reference.spp}
+    if ctx.plan.sweep:                      # a point of a sweep: at which value
+        param = ctx.plan.sweep[0]
+        meta[param] = ctx.defines[param]
     files.write_exr(f"{ctx.images_dir}/reference.exr", r.astype(np.float32), meta)
     for name, unit in ctx.units[ctx.plan.spp].items():
         x = unit.images[..., :3].astype(np.float64)
