@@ -8,7 +8,7 @@ the estimator is unbiased. Rendering is linear in the map, so
     image(map) = image(map without sun) + image(sun alone),
 
 and an estimator that agrees with the reference on the sunless map and
-misses only a sun it is expected to hit less than once is limited by its
+misses only a sun it is expected to hit only a few times is limited by its
 sample count, not biased (the failures group of ``mcillum validate`` uses this:
 validation/stages.py, ``split_sun``).
 

@@ -6,6 +6,7 @@ sends a packet off this machine."""
 import base64
 import io
 import json
+import math
 import os
 import re
 import shutil
@@ -92,6 +93,45 @@ def test_results_round_trip_through_json():
     it back gives the same records."""
     res = synthetic_results()
     assert results.from_json(Results, json.loads(json.dumps(results.to_json(res)))) == res
+
+
+def test_non_finite_numbers_are_written_as_null_and_read_back_as_nan(tmp_path):
+    """An exact estimator's slope is NaN, an unbounded interval ±inf, a broken
+    render's mean NaN: results.json (plain JSON) holds them as null."""
+    res = synthetic_results()
+    est = res.scenes[0].estimators[0]
+    est.convergence = Convergence(math.nan, -math.inf, math.inf, True, True, True)
+    est.runs[0].efficiency = math.inf
+    results.write_json(str(tmp_path / "results.json"), res)
+    constants = []                          # NaN, Infinity: not JSON
+    json.loads((tmp_path / "results.json").read_text(), parse_constant=constants.append)
+    assert constants == []
+    back = results.load(str(tmp_path)).scenes[0].estimators[0]
+    assert all(math.isnan(x) for x in (back.convergence.slope, back.convergence.low,
+                                       back.convergence.high, back.runs[0].efficiency))
+
+
+def test_results_of_minor_version_0_still_load(tmp_path):
+    """A file from before minor version 1: no minor_version, estimator_facts
+    or firefly_fraction, and refused failure rows with "numbers": {}."""
+    data = results.to_json(synthetic_results())
+    for key in ("minor_version", "estimator_facts"):
+        data.pop(key)
+    for scene in data["scenes"]:
+        for est in scene["estimators"]:
+            for run in est["runs"]:
+                run.pop("firefly_fraction")
+    data["failures"] = [{"id": "failures.unreachable.point_light", "group": "unreachable",
+                         "label": "point_light", "scene": "point_light", "defines": {},
+                         "res": 8, "spp": 16, "seeds": 16, "max_depth": 2, "summary": "",
+                         "estimators": [{"name": "cosine_hemisphere", "refused": True,
+                                         "message": "m", "verdict": "refused",
+                                         "numbers": {}}]}]
+    (tmp_path / "results.json").write_text(json.dumps(data))
+    old = results.load(str(tmp_path))
+    assert old.minor_version == 0 and old.estimator_facts == {}
+    assert old.scenes[0].estimators[0].top.firefly_fraction is None
+    assert old.failures[0].estimators[0].numbers is None
 
 
 def fake_run_dir(tmp_path, res=None):

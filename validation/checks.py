@@ -2,8 +2,9 @@
 
 A check is a function ``(context, units, reference) -> list[Check]``: it reads
 what the stages measured (on the context), the renders (``units``: spp →
-estimator → :class:`~mcillum.validation.sweeps.Unit`) and the reference, and
-says pass or fail with a message. Check ids are
+estimator → :class:`~mcillum.validation.sweeps.Unit`; None after a sweep, whose
+points each had their own) and the reference (likewise), and says pass or fail
+with a message. Check ids are
 ``<scene or case>/<estimator>/<what>``. The pipeline runs the tuples below:
 
 * :data:`SCENE` — per scene × estimator: ``finite`` (no NaN/Inf), ``unbiased``
@@ -25,8 +26,11 @@ Failure-case verdicts (:func:`case_verdict`): ``fine``; ``heavy-tailed``
 only if it replicates in K fresh renders (an unseen tail replicates with
 probability about α, a bias with the test's power); a replicated rejection
 on a map with a sun is excused ("K too small to tell") when the estimator
-agrees with the reference on the map without the sun and is expected to hit
-the sun fewer than :data:`SUN_HITS` times per pixel in all its samples.
+agrees with the reference on the map without the sun and either is expected
+to hit the sun fewer than :data:`SUN_HITS` times per pixel in all its samples
+or has no bound on that (its facts give no largest pdf: BSDF sampling, and
+the next-event estimators, whose excuse is doubtful: they sample the sun
+directly).
 """
 
 from __future__ import annotations
@@ -180,6 +184,11 @@ def sweep_finite(ctx, units, reference) -> list[Check]:
 SWEEP = (sweep_finite,)
 
 
-def run(checks_, ctx, units, reference) -> list[Check]:
-    """All checks of ``checks_`` on one context, in order."""
-    return [c for f in checks_ for c in f(ctx, units, reference)]
+def run(checks_, ctx, units, reference, by_estimator: bool = False) -> list[Check]:
+    """All checks of ``checks_`` on one context: in the order of ``checks_``,
+    or, ``by_estimator``, every check of one estimator before the next's."""
+    found = [c for f in checks_ for c in f(ctx, units, reference)]
+    if not by_estimator:
+        return found
+    names = list(dict.fromkeys(c.id.split("/")[1] for c in found))
+    return sorted(found, key=lambda c: names.index(c.id.split("/")[1]))  # (stable)

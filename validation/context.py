@@ -51,7 +51,7 @@ class Context:
     scene_key: str = ""             # load: content hash (references.cache_key)
     params: dict = None             # load: integrator properties ({"max_depth": d})
     integrators: dict = field(default_factory=dict)   # choose_estimators / probe_refusals
-    refused: dict = field(default_factory=dict)       # probe_refusals: name → message
+    refused: dict = field(default_factory=dict)       # probe_refusals: name → error
     compile_seconds: dict = field(default_factory=dict)  # render_*: first render each
     units: dict = field(default_factory=dict)         # render_*: spp → name → Unit
     reference: object = None        # build_reference: references.Reference

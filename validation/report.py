@@ -172,12 +172,14 @@ def _failures(res: Results, run_dir: str, colours: dict) -> str:
     for s in res.scenes:
         for e in s.estimators:
             per = np.asarray(e.top.relmse_per_render, float)
+            fireflies = e.top.firefly_fraction
             if len(per) and tails.is_heavy(float(per.max()), float(np.median(per)),
-                                           e.top.firefly_fraction):
+                                           fireflies or 0.0):
+                shown = ("" if fireflies is None else
+                         f", fireflies {100 * fireflies:.3f} % of pixels")
                 heavy.append(f"<li><code>{s.name}/{e.name}</code>: heavy-tailed at "
                              f"{e.top.spp} spp: the worst render's relMSE is "
-                             f"{tails.tail_ratio(per):.0f}× the median, fireflies "
-                             f"{100 * e.top.firefly_fraction:.3f} % of pixels</li>")
+                             f"{tails.tail_ratio(per):.0f}× the median{shown}</li>")
     spreads = "".join(charts.error_spread(s, colours) for s in res.scenes)
     cases = "".join(_failure_case(c, run_dir, colours) for c in res.failures)
     return f"""

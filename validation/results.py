@@ -7,6 +7,9 @@ module turns them into files and back:
   ``validation/results.schema.json`` (JSON Schema 2020-12), documented in the
   README. ``version`` (major) changes when a field changes meaning, and
   readers refuse other majors; ``minor_version`` counts fields added since.
+  JSON has no NaN or infinity: a non-finite number (an exact estimator's
+  slope, an unbounded interval, the mean of a broken render) is written as
+  null and read back as NaN.
 * ``results.csv`` — one row per scene × estimator × spp;
 * ``summary.md`` — for CI logs and pull requests;
 * JUnit XML — one test case per check.
@@ -18,6 +21,7 @@ import csv
 import dataclasses
 import io
 import json
+import math
 import os
 import types
 import typing
@@ -31,7 +35,8 @@ from . import metrics
 
 SCHEMA = "mcillum.results"
 VERSION = 1
-#: 1: ``minor_version``, ``estimator_facts``, ``firefly_fraction`` per run.
+#: 1: ``minor_version``, ``estimator_facts``, ``firefly_fraction`` per run, and
+#: in every failure-case row ``tail_ratio`` and the NaN/negative counts.
 MINOR_VERSION = 1
 SCHEMA_FILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results.schema.json")
 
@@ -92,7 +97,7 @@ class RunStats:
     samples_per_second: float
     efficiency: float
     reference_relmse: float        # what the reference's own noise adds to relmse
-    firefly_fraction: float = 0.0
+    firefly_fraction: float | None = None     # (None in runs before minor version 1)
 
 
 @dataclass
@@ -371,7 +376,9 @@ def _encode(value):
     if isinstance(value, (list, tuple)):
         return [_encode(v) for v in value]
     if hasattr(value, "item"):              # numpy scalars
-        return value.item()
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None                         # (JSON has no NaN or infinity)
     return value
 
 
@@ -380,7 +387,10 @@ def _decode(hint, data):
     origin = typing.get_origin(hint)
     if origin in (typing.Union, types.UnionType):
         args = [a for a in typing.get_args(hint) if a is not type(None)]
-        return None if data is None else _decode(args[0], data)
+        empty = data == {} and dataclasses.is_dataclass(args[0])   # (older files)
+        return None if data is None or empty else _decode(args[0], data)
+    if hint is float and data is None:
+        return math.nan                     # written as null (see the module doc)
     if dataclasses.is_dataclass(hint):
         return from_json(hint, data)
     if origin is list:
@@ -447,7 +457,9 @@ def load(run_dir: str) -> Results:
         raise ResultsError(f"{path} has results version {data.get('version')!r}; this "
                            f"mcillum reads version {VERSION}: {again}")
     try:
-        return from_json(Results, data)
+        record = from_json(Results, data)
+        record.minor_version = data.get("minor_version", 0)
+        return record
     except KeyError as err:
         raise ResultsError(f"{path} lacks the field {err}: {again}") from None
 

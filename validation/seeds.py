@@ -6,8 +6,9 @@ seeds from a named stream of :data:`STREAMS`, and no two streams overlap
 (tests/test_seeds.py checks it). Streams that are split into blocks (one block
 per ladder rung) hand out one block per index.
 
-The numbers are those mcillum has always used, so a validation run renders
-the same images as before the allocator existed:
+The numbers of the validation streams are those mcillum used before the
+allocator existed, so a validation run renders the same images (`mcillum
+bench`, which used 0, 1, …, has its own stream now):
 
     ladder           rung r, render i  →  10 000·r + i       (50 rungs × 10 000)
     equal_time       500 000 + i

@@ -1,4 +1,5 @@
-"""The stages of a validation run: each is ``stage(context) -> None``.
+"""The stages of a validation run: each is ``stage(context) -> None`` (the sweep's
+last two also take its points).
 
 A stage reads what earlier stages put on the :class:`~.context.Context` and
 adds what it finds. :mod:`~mcillum.validation.pipeline` lists which stages a
@@ -134,7 +135,7 @@ def measure(ctx) -> None:
 
 
 def judge_scene(ctx) -> None:
-    ctx.checks = checks.run(checks.SCENE, ctx, ctx.units, ctx.reference)
+    ctx.checks = checks.run(checks.SCENE, ctx, ctx.units, ctx.reference, by_estimator=True)
 
 
 def equal_time(ctx) -> None:
@@ -211,7 +212,7 @@ def tail_numbers(ctx) -> None:
             float(np.median(units[name].seconds)), ratio,
             None if row.refused else tails.spp_to_match(per, path_rel, spp),
             nonfinite_values=bad[0], negative_values=bad[1], tail_ratio=tails.tail_ratio(per))
-        if row.refused:      # biased by the user's choice: what is missing
+        if row.refused and ratio is not None:   # the user's choice: what is missing
             row.numbers.missing_fraction = 1.0 - ratio
 
 
