@@ -164,6 +164,17 @@ def not_found(text: str) -> safety.EnvmapError:
         "--list`) or the path of an existing .exr file")
 
 
+def _source(text: str, params: dict) -> str:
+    """The file behind a probe name or a path (no generator parameters apply)."""
+    if params:
+        raise ParameterError(f"parameters {sorted(params)} only apply to procedural "
+                             f"maps, not '{text}'")
+    path = probes.path(text) if text in probes.names() else text
+    if not os.path.isfile(path):
+        raise not_found(text)
+    return path
+
+
 def load(name_or_path: str | os.PathLike, policy: str = safety.DEFAULT_POLICY,
          **params) -> tuple[np.ndarray, safety.Report | None]:
     """The array of a map name or file (sanitised), and its loading report
@@ -171,13 +182,7 @@ def load(name_or_path: str | os.PathLike, policy: str = safety.DEFAULT_POLICY,
     text = os.fspath(name_or_path)
     if text in PROCEDURAL:
         return generate(text, **params), None
-    if params:
-        raise ParameterError(f"parameters {sorted(params)} only apply to procedural "
-                             f"maps, not '{text}'")
-    path = probes.path(text) if text in probes.names() else text
-    if not os.path.isfile(path):
-        raise not_found(text)
-    return safety.load(path, policy)
+    return safety.load(_source(text, params), policy)
 
 
 def resolve(name_or_path: str | os.PathLike, policy: str = safety.DEFAULT_POLICY,
@@ -189,8 +194,8 @@ def resolve(name_or_path: str | os.PathLike, policy: str = safety.DEFAULT_POLICY
         checked = check_parameters(text, params)
         key = {"name": text, "params": checked, "version": 1}
         return cached(key, lambda: generate(text, **checked)), None
-    rgb, report = load(text, policy, **params)
-    path = probes.path(text) if text in probes.names() else text
+    path = _source(text, params)
+    rgb, report = safety.load(path, policy)
     if report.clean:
         return path, report
     st = os.stat(path)

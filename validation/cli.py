@@ -139,7 +139,7 @@ def _render(args) -> int:
         raise _Usage(f"--seed must be in [0, 2^32 - 1] (Mitsuba's seeds are 32-bit "
                      f"unsigned), got {args.seed}")
     params, defines = _assignments(args.param), _assignments(args.define)
-    png = os.path.splitext(args.output)[0] + ".png"
+    png = renders.preview_path(args.output)
     files.check_output(png, "the PNG preview")
     files.remove_stale_partials(os.path.dirname(os.path.abspath(args.output)))
 

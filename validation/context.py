@@ -14,9 +14,6 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 
-from . import seeds
-
-
 @dataclass
 class Run:
     """What every context of one validation run shares."""
@@ -57,6 +54,7 @@ class Context:
     reference: object = None        # build_reference: references.Reference
     measured: dict = field(default_factory=dict)      # measure: name → EstimatorResult
     rows: dict = field(default_factory=dict)          # tail_numbers …: name → CaseRow
+    per_render: dict = field(default_factory=dict)    # tail_numbers: name → relMSE per seed
     sweep_rows: list = field(default_factory=list)    # sweep: SweepRow per estimator
     equal_time: object = None       # equal_time: results.EqualTime
     equal_units: dict = field(default_factory=dict)   # equal_time: name → Unit
@@ -88,11 +86,6 @@ class Context:
             d = os.path.join(self.run.out_dir, "images", self.id)
         os.makedirs(d, exist_ok=True)
         return d
-
-    @staticmethod
-    def seeds(name: str, block: int = 0) -> seeds.Stream:
-        """Seed stream ``name`` (see seeds.py)."""
-        return seeds.stream(name, block)
 
     def derive(self, estimators=None, *, label: str = "", streams: dict | None = None,
                **defines) -> "Context":

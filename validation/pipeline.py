@@ -69,7 +69,7 @@ def failure_case(run: Run, plan: profiles.FailureCase,
               for v in values]
     stages.sweep_rows(ctx, points)
     stages.judge_sweep(ctx)
-    return stages.sweep_result(ctx), ctx.checks
+    return stages.case_result(ctx), ctx.checks
 
 
 def validate(profile_name: str = "quick", scene_names=None, estimators=None,

@@ -228,10 +228,15 @@ def provenance(scene_path: str, name: str, integrator, params: dict, defines: di
     return meta
 
 
+def preview_path(path: str) -> str:
+    """The tone-mapped PNG written beside the EXR at ``path``."""
+    return os.path.splitext(path)[0] + ".png"
+
+
 def save(path: str, result: Render, meta: dict, exposure: float = 0.0) -> str:
     """Write the render as EXR at ``path`` and a tone-mapped PNG beside it;
     returns the PNG's path."""
-    png = os.path.splitext(path)[0] + ".png"
+    png = preview_path(path)
     files.write_exr(path, result.image, meta)
     images.write_png(png, result.image, exposure)
     return png

@@ -16,10 +16,10 @@ import numpy as np
 
 from mcillum import files
 from mcillum.envmaps import sun
+from mcillum.errors import root_cause
 from mcillum.integrators import UnreachableContentError, registry
 
-from . import analysis, checks, references, renders, scenes, statistics, sweeps, tails
-from mcillum.errors import root_cause
+from . import analysis, checks, references, renders, scenes, seeds, statistics, sweeps, tails
 from .results import (BatchTest, CaseReference, CaseResult, CaseRow, EstimatorResult,
                       ReferenceSummary, SceneResult, SunSplit, Sweep, SweepRow, TailNumbers)
 
@@ -67,7 +67,7 @@ def probe_refusals(ctx) -> None:
 def _refusal(ctx, name: str) -> UnreachableContentError | None:
     try:
         renders.render(ctx.scene, renders.make_integrator(name, ctx.params), 1,
-                       ctx.seeds("refusal_probe").seed())
+                       seeds.stream("refusal_probe").seed())
     except Exception as exc:  # noqa: BLE001  (mi.render wraps the plugin's error)
         cause = root_cause(exc)
         if isinstance(cause, UnreachableContentError):
@@ -79,7 +79,7 @@ def _refusal(ctx, name: str) -> UnreachableContentError | None:
 # ----------------------------------- Renders ------------------------------------
 
 def _compile(ctx) -> None:
-    seed = ctx.seeds("compile").seed()
+    seed = seeds.stream("compile").seed()
     ctx.compile_seconds = {n: renders.render(ctx.scene, integ, 1, seed).seconds
                            for n, integ in ctx.integrators.items()}
 
@@ -97,14 +97,14 @@ def render_seeds(ctx) -> None:
     spp, k = ctx.plan.spp, ctx.plan.seeds
     ctx.units = {spp: sweeps.interleaved(
         ctx.scene, ctx.integrators, dict.fromkeys(ctx.integrators, spp), k,
-        ctx.seeds(ctx.streams["renders"]).take(k), ctx.run.step, ctx.label)}
+        seeds.stream(ctx.streams["renders"]).take(k), ctx.run.step, ctx.label)}
 
 
 def _fresh(ctx, name: str) -> np.ndarray:
     """K new renders of one estimator (the context's replication stream)."""
     spp, k = ctx.plan.spp, ctx.plan.seeds
     return sweeps.interleaved(ctx.scene, {name: ctx.integrators[name]}, {name: spp}, k,
-                              ctx.seeds(ctx.streams["replication"]).take(k))[name].images
+                              seeds.stream(ctx.streams["replication"]).take(k))[name].images
 
 
 # ---------------------------------- Reference -----------------------------------
@@ -147,7 +147,7 @@ def equal_time(ctx) -> None:
     plan.spp = {n: min(s, 4 * ctx.plan.ladder[-1]) for n, s in plan.spp.items()}
     k = max(4, ctx.plan.renders // 2)
     ctx.equal_units = sweeps.interleaved(ctx.scene, ctx.integrators, plan.spp, k,
-                                         ctx.seeds("equal_time").take(k), ctx.run.step,
+                                         seeds.stream("equal_time").take(k), ctx.run.step,
                                          "equal time")
     ctx.equal_time = analysis.equal_time_measure(plan, ctx.equal_units, ctx.reference)
 
@@ -166,13 +166,13 @@ def save_images(ctx) -> None:
         images = ctx.units[top][name].images
         files.write_exr(f"{d}/{name}_spp{top}.exr", images[0],
                         {"integrator": name, "spp": top,
-                         "seed": ctx.seeds("ladder", rung).seed(0)})
+                         "seed": seeds.stream("ladder", rung).seed(0)})
         files.write_exr(f"{d}/{name}_spp{top}_mean.exr", images.mean(axis=0),
                         {"integrator": name, "spp": top, "renders": len(images)})
     for name, unit in ctx.equal_units.items():
         files.write_exr(f"{d}/{name}_equal_time.exr", unit.images[0],
                         {"integrator": name, "spp": unit.spp,
-                         "seed": ctx.seeds("equal_time").seed(0),
+                         "seed": seeds.stream("equal_time").seed(0),
                          "render_seconds": float(unit.seconds[0])})
 
 
@@ -204,7 +204,7 @@ def tail_numbers(ctx) -> None:
         if name not in units:
             continue
         x = units[name].images[..., :3].astype(np.float64)
-        per = tails.per_render_relmse(x, r)
+        per = ctx.per_render[name] = tails.per_render_relmse(x, r)
         bad = tails.bad_values(x)
         ratio = float(x.mean() / r.mean()) if r.mean() > 0 else None
         row.numbers = TailNumbers(
@@ -277,20 +277,20 @@ def judge_case(ctx) -> None:
     ctx.checks = checks.run(checks.CASE, ctx, ctx.units, ctx.reference)
 
 
-def _evidence(ctx, name: str, x: np.ndarray, per: np.ndarray) -> dict:
+def _evidence(ctx, name: str, images: np.ndarray, per: np.ndarray) -> dict:
     """The median-error and worst-error renders of one estimator, as EXR."""
     order = np.argsort(per)
     out = {}
     for label, k in (("median", order[len(order) // 2]), ("worst", order[-1])):
         out[label] = f"{name}_{label}.exr"
-        files.write_exr(f"{ctx.images_dir}/{out[label]}", x[k].astype(np.float32),
+        files.write_exr(f"{ctx.images_dir}/{out[label]}", images[k][..., :3],
                         {"integrator": name, "seed_index": int(k), "relmse": float(per[k])})
     return out
 
 
 def save_evidence(ctx) -> None:
     """failures/<case>/: the reference, and each rendering estimator's
-    median- and worst-error seed."""
+    median- and worst-error seed (by the per-render relMSE of tail_numbers)."""
     r = ctx.reference.mean[..., :3]
     meta = {"spp": ctx.reference.spp}
     if ctx.plan.sweep:                      # a point of a sweep: at which value
@@ -298,18 +298,19 @@ def save_evidence(ctx) -> None:
         meta[param] = ctx.defines[param]
     files.write_exr(f"{ctx.images_dir}/reference.exr", r.astype(np.float32), meta)
     for name, unit in ctx.units[ctx.plan.spp].items():
-        x = unit.images[..., :3].astype(np.float64)
-        images = _evidence(ctx, name, x, tails.per_render_relmse(x, r))
-        if name in ctx.rows:
-            ctx.rows[name].images = images
+        ctx.rows[name].images = _evidence(ctx, name, unit.images, ctx.per_render[name])
 
 
 def case_result(ctx) -> CaseResult:
+    """A failure case's result: its rows and reference, or for a sweep its
+    rows along the parameter (each point had its own reference)."""
     p = ctx.plan
-    return CaseResult(p.id, p.group, p.label or p.scene, p.scene, dict(p.defines), p.res,
-                      p.spp, p.seeds, p.max_depth, ctx.info.summary,
-                      list(ctx.rows.values()),
-                      reference=CaseReference(ctx.reference.spp, ctx.reference.capped))
+    swept = bool(p.sweep)
+    return CaseResult(
+        p.id, p.group, p.label or p.scene, p.scene, dict(p.defines), p.res, p.spp, p.seeds,
+        p.max_depth, ctx.info.summary, ctx.sweep_rows if swept else list(ctx.rows.values()),
+        reference=None if swept else CaseReference(ctx.reference.spp, ctx.reference.capped),
+        sweep=Sweep(p.sweep[0], list(p.sweep[1])) if swept else None)
 
 
 # ------------------------------- Parameter sweeps -------------------------------
@@ -331,10 +332,3 @@ def sweep_rows(ctx, points: list) -> None:
 
 def judge_sweep(ctx) -> None:
     ctx.checks = checks.run(checks.SWEEP, ctx, None, None)
-
-
-def sweep_result(ctx) -> CaseResult:
-    p = ctx.plan
-    return CaseResult(p.id, p.group, p.label or p.scene, p.scene, dict(p.defines), p.res,
-                      p.spp, p.seeds, p.max_depth, ctx.info.summary, ctx.sweep_rows,
-                      sweep=Sweep(p.sweep[0], list(p.sweep[1])))

@@ -21,6 +21,7 @@ import numpy as np
 from mcillum import files
 
 from . import renders
+from .seeds import stream
 
 
 @dataclass
@@ -104,6 +105,6 @@ def run(ctx) -> dict[int, dict[str, Unit]]:
             continue
         # distinct seeds on every rung: rungs are independent samples
         result[spp] = interleaved(ctx.scene, ctx.integrators, dict.fromkeys(names, spp), k,
-                                  ctx.seeds("ladder", rung).take(k), ctx.run.step, ctx.id)
+                                  stream("ladder", rung).take(k), ctx.run.step, ctx.id)
         _save(path, key, spp, result[spp])
     return result
