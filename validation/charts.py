@@ -153,6 +153,9 @@ def failure_sweep(case: CaseResult, colours: dict) -> str:
         ax.set_xlabel(case.sweep.param)
         ax.set_ylabel(label)
         ax.grid(True, which="both", alpha=0.3)
+        # ticks at the swept values only (log minor labels overprint each other)
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+        ax.set_xticks(values, [f"{v:g}" for v in values])
         if case.sweep.param == "alpha":
             ax.invert_xaxis()         # narrower lobes to the right
     axes[0].set_title(f"{case.label}: error as the lobe narrows")
