@@ -182,20 +182,25 @@ class IlluminationEstimator(mi.SamplingIntegrator):
 
     # ----------------- Scene validation and pass splitting ----------------
 
+    def check_scene(self, scene) -> None:
+        """Refuse a scene this strategy would render wrong (raise
+        :class:`UnreachableContentError`), unless the user opted into the
+        biased image: then record what it lacks in ``unreachable`` and warn,
+        once per scene. :meth:`render` calls it before any work; callers may
+        ask it without rendering."""
+        self.unreachable = scene_checks.check_reachable(
+            scene, self.plugin_name, self.reachable, self.allow_unreachable,
+            warn=getattr(self, "_warned_for", None) != id(scene))
+        if self.unreachable:
+            self._warned_for = id(scene)
+
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         if getattr(self, "_in_pass", False):
             # (Mitsuba's render calls back into this override: the outer call
             # has checked the scene and planned the passes already.)
             return self._mitsuba_render(scene, sensor, seed, spp, develop, evaluate)
 
-        # Refuse scenes this strategy would render wrong, before any work,
-        # unless the user opted into the biased image.
-        # (warn once per scene, not once per render of it)
-        self.unreachable = scene_checks.check_reachable(
-            scene, self.plugin_name, self.reachable, self.allow_unreachable,
-            warn=getattr(self, "_warned_for", None) != id(scene))
-        if self.unreachable:
-            self._warned_for = id(scene)
+        self.check_scene(scene)
 
         # Split wavefronts beyond 32 bits into passes (see passes.py).
         sensor_ = scene.sensors()[sensor] if isinstance(sensor, int) else sensor

@@ -16,12 +16,42 @@ import pytest
 
 from mcillum import files
 from mcillum.validation import charts, report, results
-from mcillum.validation.results import (Check, Convergence, EqualTime, EstimatorInfo,
-                                        EstimatorResult, ReferenceSummary, Results, RunStats,
-                                        SceneResult, Unbiasedness)
+from mcillum.validation import costs
+from mcillum.validation.results import (Budget, BudgetRun, Check, Convergence, EstimatorInfo,
+                                        EstimatorResult, Interval, Ratio, ReferenceSummary,
+                                        Results, RunStats, SceneResult, Speed, Unbiasedness)
 
 ESTIMATORS = ["uniform_hemisphere", "cosine_hemisphere", "path"]
 COLOURS = {"uniform_hemisphere": "#d62728", "cosine_hemisphere": "#1f77b4", "path": "#444444"}
+
+
+def synthetic_speed(rng, res=32) -> Speed:
+    """A speed stage of the three estimators at ``res``²: time ∝ spp, and
+    relMSE ∝ 1/spp with a constant that grows from path to uniform."""
+    models = {n: costs.fit_cost({s: list(2e-3 + 1e-3 * s * rng.uniform(0.97, 1.03, 5))
+                                 for s in (8, 32)}) for n in ESTIMATORS}
+    budgets = []
+    for path_spp in (4, 8, 16):
+        seconds = costs.seconds_at(models["path"], path_spp)
+        runs = {}
+        for i, n in enumerate(ESTIMATORS):
+            spp = costs.spp_for(models[n], seconds)
+            per = list((3 - i) * 0.1 / spp * rng.uniform(0.9, 1.1, 4))
+            mean, ci = costs.mean_interval(per)
+            runs[n] = BudgetRun(spp, list(seconds * rng.uniform(0.98, 1.02, 4)), mean, ci, per,
+                                True)
+        budgets.append(Budget(seconds, path_spp, runs, 1e-5))
+    top = budgets[-1].estimators
+    ratios = {n: Ratio(*costs.ratio_interval(r.relmse_per_render, r.wall_seconds,
+                                             top["path"].relmse_per_render,
+                                             top["path"].wall_seconds))
+              for n, r in top.items()}
+    ranking = costs.ranking({n: costs.efficiency_interval(r.relmse_per_render, r.wall_seconds)
+                             for n, r in top.items()})
+    return Speed(res, 4, models, budgets, ratios, ranking,
+                 ReferenceSummary("path", 4096, 64, 64, 1.0, 0, 64, 1e-6, 1e-6, None, "k"),
+                 {n: 0.1 * (3 - i) for i, n in enumerate(ESTIMATORS)},
+                 ["uniform_hemisphere: a note"])
 
 
 def synthetic_results(scenes=("alpha", "beta"), ladder=(4, 16, 64)) -> Results:
@@ -45,9 +75,7 @@ def synthetic_results(scenes=("alpha", "beta"), ladder=(4, 16, 64)) -> Results:
         scene_results.append(SceneResult(
             s, f"scenes/{s}.xml", f"{s}: a synthetic scene", 8, 2, list(ladder), 8,
             ReferenceSummary("path", 4096, 64, 64, 1.0, 0, 64, 1e-6, 1e-6, None, "k"), ests,
-            EqualTime(1e-3, {n: 3 for n in ESTIMATORS}, {n: 0.1 for n in ESTIMATORS},
-                      ESTIMATORS[::-1], {n: 0.1 for n in ESTIMATORS},
-                      {n: 1e-3 for n in ESTIMATORS}, ESTIMATORS[::-1], True)))
+            synthetic_speed(rng)))
     facts = {n: EstimatorInfo(n.replace("_", " "), COLOURS[n], [], None) for n in ESTIMATORS}
     return Results("2026-11-22T12:00:00", "quick", "llvm_ad_rgb", "3.9.1", "1.5.0",
                    {"platform": "Linux", "cpus": 2, "python": "3.11"}, 0.01, 0.1, 12.0,
@@ -76,7 +104,7 @@ def test_scene_charts_label_axes_and_every_estimator(builder):
 
 def test_axis_labels_carry_units():
     scene = synthetic_results().scenes[0]
-    assert "wall time per render [ms]" in charts.error_vs_time(scene, COLOURS)
+    assert "wall time per render at 32² [ms]" in charts.error_vs_time(scene, COLOURS)
     assert "samples per pixel" in charts.error_vs_spp(scene, COLOURS)
     assert "slope -1.00" in charts.error_vs_spp(scene, COLOURS).replace("+", "")
     assert "ideal slope" in charts.error_vs_spp(scene, COLOURS)
@@ -146,8 +174,14 @@ def fake_run_dir(tmp_path, res=None):
         for e in s.estimators:
             noisy = (ref * rng.uniform(0.5, 1.5, ref.shape)).astype(np.float32)
             files.write_exr(d / f"{e.name}_spp{e.top.spp}.exr", noisy)
-            files.write_exr(d / f"{e.name}_equal_time.exr", noisy,
-                            {"spp": 3, "render_seconds": 0.001})
+        (d / "display").mkdir()
+        big = rng.uniform(0.2, 1.0, (32, 32, 3)).astype(np.float32)
+        files.write_exr(d / "display" / "reference.exr", big)
+        for e in s.estimators:
+            noisy = (big * rng.uniform(0.5, 1.5, big.shape)).astype(np.float32)
+            files.write_exr(d / "display" / f"{e.name}.exr", noisy,
+                            {"spp": 3, "render_seconds": 0.001},
+                            {"flip": rng.uniform(0, 1, (32, 32, 1)).astype(np.float32)})
     results.write_json(str(tmp_path / "results.json"), res)
     return tmp_path
 
@@ -166,7 +200,9 @@ def test_report_is_self_contained(tmp_path):
     assert not re.search(r'(src|href)="(?!data:|#)', text)  # no external resources
     assert "<script" not in text
     pngs = data_images(text)
-    assert len(pngs) == 2 * (1 + 3 + 3 + 3 + 4)  # per scene: ref, eq-time, eq-spp, errors, crops
+    # per scene: reference and 3 estimators, 3 error maps, 3 FLIP maps, 4 crops
+    assert len(pngs) == 2 * (1 + 3 + 3 + 3 + 4)
+    assert "$" not in re.sub(r"<(svg|style).*?</\1>", "", text, flags=re.S)
     for b64 in pngs:
         assert matplotlib.image.imread(io.BytesIO(base64.b64decode(b64)), format="png").size
     assert "4 of 6 checks passed" in text                    # 2 scenes x 3, uniform fails

@@ -2,6 +2,7 @@
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -17,7 +18,6 @@ import mitsuba as mi
 from mcillum import files
 from mcillum.envmaps import procedural
 from mcillum.validation import cli, profiles, references, renders, results, scenes, stages
-from mcillum.validation.analysis import spp_for_budget
 from mcillum.validation.context import Context, Run
 
 from conftest import wrong_pdf_integrator
@@ -25,7 +25,8 @@ from conftest import wrong_pdf_integrator
 # A small profile for tests: the two analytic scenes, few rungs.
 TINY = profiles.Profile("quick", (
     profiles.SceneRun("furnace_sphere", 8, (4, 16, 64, 256), 8, max_depth=2),
-    profiles.SceneRun("cap_plane", 4, (16, 64, 256, 1024), 8, max_depth=2),
+    profiles.SceneRun("cap_plane", 4, (16, 64, 256, 1024), 8, max_depth=2,
+                      display=profiles.Display(32)),
 ), reference_max_seconds=20.0)
 
 
@@ -61,8 +62,26 @@ def test_correct_estimators_pass_and_outputs_are_complete(llvm, tiny_profile, tm
             assert [r["spp"] for r in est["runs"]] == list(scene["ladder"])
             assert all(r["nonfinite_fraction"] == 0 for r in est["runs"])
         assert scene["reference"]["passes"] >= references.MIN_PASSES
-        assert scene["equal_time"]["measured_ranking"]
         assert (out / "images" / scene["name"] / "reference.exr").is_file()
+    speed = data["scenes"][1]["speed"]                      # cap_plane has a display
+    assert "speed" not in data["scenes"][0] and speed["res"] == 32
+    assert set(speed["cost_model"]) == set(speed["efficiency_vs_path"]) == \
+        set(TINY.estimator_names())
+    assert [b["path_spp"] for b in speed["budgets"]] == sorted(b["path_spp"]
+                                                              for b in speed["budgets"])
+    for budget in speed["budgets"]:
+        for run in budget["estimators"].values():
+            assert len(run["wall_seconds"]) == len(run["relmse_per_render"]) == 4
+            assert run["relmse_ci"][0] <= run["relmse"] <= run["relmse_ci"][1]
+    assert sorted(p["rank"] for p in speed["ranking"])[0] == 1
+    assert (out / "images" / "cap_plane" / "display" / "path.exr").is_file()
+    broken = json.loads(json.dumps(data))
+    broken["scenes"][1]["speed"]["cost_model"]["path"]["fixed_s_ci"] = [0.1]
+    with pytest.raises(jsonschema.ValidationError):   # the schema checks the speed object
+        jsonschema.validate(broken, schema)
+    page = (out / "report" / "index.html").read_text()
+    assert not re.search(r"\$[a-z_]+", re.sub(r"<(svg|style).*?</\1>", "", page, flags=re.S))
+    assert "albedo 0.5" in page                             # placeholders show their values
     rows = (out / "results.csv").read_text().splitlines()
     assert rows[0].startswith("scene,estimator,spp")
     assert len(rows) == 1 + len(TINY.runs) * len(TINY.estimator_names()) * 4
@@ -132,9 +151,7 @@ def test_rerun_resumes_without_rendering(llvm, tiny_profile, tmp_path, monkeypat
     assert code == 0 and [p.stat().st_mtime_ns for p in npz] == stamps
     ref = json.loads((out / "results.json").read_text())["scenes"][0]["reference"]
     assert ref["rendered_passes"] == 0 and ref["cached_passes"] == ref["passes"], ref
-    # only the compile renders (spp 1) and the equal-time check render again
-    equal = json.loads((out / "results.json").read_text())["scenes"][0]["equal_time"]
-    assert set(calls) - {1} <= set(equal["spp"].values()), (sorted(set(calls)), equal)
+    assert calls == [], "a re-run into a finished directory rendered again"
 
 
 # ------------------------------ Reference cache --------------------------------
@@ -219,14 +236,3 @@ def test_cache_survives_a_killed_run(llvm, tmp_path):
     assert {s["name"] for s in data["scenes"]} == {"cornell_box", "furnace_sphere"}
 
 
-def test_spp_for_budget_reads_the_measured_ladder():
-
-    ladder = [4, 16, 64, 256]
-    linear = [1e-3 * s for s in ladder]                     # time ∝ spp
-    assert spp_for_budget(32e-3, ladder, linear) == 32
-    assert spp_for_budget(1e-3, ladder, linear) == 1        # below the first rung
-    assert spp_for_budget(512e-3, ladder, linear) == 512    # beyond the last
-    overhead = [4.0e-3, 4.1e-3, 4.3e-3, 5.0e-3]             # launch cost dominates
-    assert 16 <= spp_for_budget(4.2e-3, ladder, overhead) <= 64
-    noisy = [4.0e-3, 3.5e-3, 4.4e-3, 6.0e-3]                # non-monotone timings
-    assert 4 <= spp_for_budget(4.2e-3, ladder, noisy) <= 64

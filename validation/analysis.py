@@ -1,5 +1,5 @@
 """From renders and a reference to numbers: metrics per spp, convergence
-slopes, efficiency and the equal-time comparison.
+slopes and efficiency of the small-image statistics.
 
 * Convergence: least-squares fit of log relMSE against log spp over the
   ladder (relMSE averaged over the K renders at each spp, minus the part the
@@ -9,11 +9,9 @@ slopes, efficiency and the equal-time comparison.
   trivially (the cosine estimator in a furnace).
 * Efficiency: 1 / (relMSE · seconds) per render (higher is better).
 * Unbiasedness: the batch-means test (statistics.py) of all rungs pooled.
-* Equal time: per estimator, fit log relMSE = a + b·log t over the ladder
-  (t = median seconds per render); at a common budget T (the geometric mean
-  of the estimators' median times at their middle rung) the fit predicts each
-  estimator's relMSE and so a ranking; a render of each estimator at the spp
-  its measured ladder says fits in T (:func:`spp_for_budget`) checks it.
+
+Accuracy at equal time is the speed-and-images stage's (speed.py, costs.py):
+at these small sizes a render's time is mostly its fixed cost.
 """
 
 from __future__ import annotations
@@ -22,7 +20,7 @@ import numpy as np
 from scipy import stats
 
 from . import metrics, statistics, tails
-from .results import Convergence, EqualTime, RunStats, Unbiasedness
+from .results import Convergence, RunStats, Unbiasedness
 
 
 def run_stats(unit, reference) -> RunStats:
@@ -82,47 +80,3 @@ def convergence(runs: list[RunStats], alpha: float = 0.05) -> Convergence:
     slope, _, (lo, hi) = loglog_fit(*zip(*ok), alpha)
     return Convergence(float(slope), float(lo), float(hi), False, bool(lo <= -1.0 <= hi),
                        bool(hi < 0))
-
-
-def equal_time_plan(per_estimator: dict[str, list[RunStats]]) -> EqualTime | None:
-    """Budget, predicted relMSE and ranking, and the spp each estimator gets."""
-    fits, lines, middles = {}, {}, []
-    for name, runs in per_estimator.items():
-        ok = [r for r in runs if r.relmse > 0]
-        if len(ok) < 2:
-            return None
-        t = [r.median_seconds for r in ok]
-        slope, intercept, _ = loglog_fit(t, [r.relmse for r in ok])
-        fits[name] = (slope, intercept)
-        lines[name] = ([r.spp for r in ok], t)
-        middles.append(ok[len(ok) // 2].median_seconds)
-    budget = float(np.exp(np.mean(np.log(middles))))
-    predicted = {n: float(np.exp(b + a * np.log(budget))) for n, (a, b) in fits.items()}
-    spp = {n: spp_for_budget(budget, *pts) for n, pts in lines.items()}
-    return EqualTime(budget, spp, predicted, sorted(predicted, key=predicted.get))
-
-
-def spp_for_budget(budget: float, spp, seconds) -> int:
-    """spp whose render takes ``budget`` seconds, read off the measured ladder:
-    log-log interpolation between rungs (times made non-decreasing), and
-    proportional scaling beyond its ends. A straight-line fit of time against
-    spp is useless at small images, where launch overhead dominates: its
-    slope is ~0 and the solved spp explodes (seen: 550 spp for a 4 ms budget
-    that took 150 ms)."""
-    spp = np.asarray(spp, float)
-    t = np.maximum.accumulate(np.asarray(seconds, float))
-    if budget <= t[0]:
-        return max(1, int(spp[0] * budget / t[0]))
-    if budget >= t[-1]:
-        return max(1, int(spp[-1] * budget / t[-1]))
-    return max(1, int(round(np.exp(np.interp(np.log(budget), np.log(t), np.log(spp))))))
-
-
-def equal_time_measure(plan: EqualTime, units: dict, reference) -> EqualTime:
-    """The measured relMSE, seconds and ranking of renders at the planned spp."""
-    stats_ = {n: run_stats(u, reference) for n, u in units.items()}
-    plan.measured_relmse = {n: s.relmse for n, s in stats_.items()}
-    plan.measured_seconds = {n: s.median_seconds for n, s in stats_.items()}
-    plan.measured_ranking = sorted(plan.measured_relmse, key=plan.measured_relmse.get)
-    plan.agrees = plan.measured_ranking[0] == plan.predicted_ranking[0]
-    return plan

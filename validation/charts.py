@@ -50,21 +50,27 @@ def _svg(fig) -> str:
 
 
 def error_vs_time(scene: SceneResult, colours: dict) -> str:
-    """relMSE against median seconds per render, one line per estimator,
-    a marker per spp (labelled), log-log: equal time reads off vertically."""
-    fig, ax = plt.subplots(figsize=(5.2, 3.8))
-    for est in scene.estimators:
-        t = [r.median_seconds * 1e3 for r in est.runs]
-        e = [r.relmse for r in est.runs]
-        ax.loglog(t, e, "o-", color=colours[est.name], label=est.name, ms=4)
-        for r, x, y in zip(est.runs, t, e):
-            ax.annotate(str(r.spp), (x, y), textcoords="offset points", xytext=(3, 3),
-                        fontsize=6, color=colours[est.name])
-    if scene.equal_time:
-        ax.axvline(scene.equal_time.budget_seconds * 1e3, color="#999999", ls=":", lw=1,
-                   label="equal-time budget")
-    return _finish(fig, ax, "wall time per render [ms]", "relMSE (ε = 0.01)",
-                   f"{scene.name}: accuracy vs time")
+    """The speed stage: relMSE against wall time per render at each budget,
+    log-log, with 95 % intervals on both axes (relMSE: Student-t over the K
+    renders; time: the range of the K renders); the budgets as dotted lines."""
+    sp = scene.speed
+    fig, ax = plt.subplots(figsize=(5.6, 4.0))
+    for name in sp.budgets[0].estimators:
+        runs = [b.estimators[name] for b in sp.budgets]
+        t = np.array([np.mean(r.wall_seconds) for r in runs]) * 1e3
+        t_err = np.array([[t_ - min(r.wall_seconds) * 1e3, max(r.wall_seconds) * 1e3 - t_]
+                          for t_, r in zip(t, runs)]).T
+        e = np.array([r.relmse for r in runs])
+        e_err = np.array([[r.relmse - r.relmse_ci.low, r.relmse_ci.high - r.relmse]
+                          for r in runs]).T
+        ax.errorbar(t, e, yerr=np.maximum(e_err, 0), xerr=np.maximum(t_err, 0), fmt="o-",
+                    color=colours[name], label=name, ms=4, capsize=2, lw=1.2)
+    for b in sp.budgets:
+        ax.axvline(b.seconds * 1e3, color="#999999", ls=":", lw=1)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    return _finish(fig, ax, f"wall time per render at {sp.res}² [ms] (budgets dotted)",
+                   "relMSE (ε = 0.01), 95 % interval", f"{scene.name}: accuracy vs time")
 
 
 def error_vs_spp(scene: SceneResult, colours: dict) -> str:
@@ -106,33 +112,39 @@ def error_spread(scene: SceneResult, colours: dict) -> str:
 
 
 def efficiency_summary(results: Results, colours: dict) -> str:
-    """Efficiency of each estimator relative to `path`, per scene (log bars)."""
+    """Efficiency of each estimator relative to `path` at each scene's largest
+    equal-time budget (speed stage), with 95 % intervals, log bars."""
     reference = registry.REFERENCE
-    scenes = [s for s in results.scenes if any(e.name == reference for e in s.estimators)]
-    names = [n for n in dict.fromkeys(e.name for s in scenes for e in s.estimators)
+    scenes = [s for s in results.scenes if s.speed is not None]
+    names = [n for n in dict.fromkeys(n for s in scenes for n in s.speed.efficiency_vs_path)
              if n != reference]
     fig, ax = plt.subplots(figsize=(7.5, 3.6))
     width = 0.8 / max(len(names), 1)
     for j, name in enumerate(names):
-        ratios = []
+        ratio, low, high = [], [], []
         for s in scenes:
-            by = {e.name: e.top.efficiency for e in s.estimators}
-            ratios.append(by.get(name, np.nan) / by[reference])
+            r = s.speed.efficiency_vs_path.get(name)
+            ratio.append(r.ratio if r else np.nan)
+            low.append(r.ratio - r.ci.low if r else 0.0)
+            high.append(r.ci.high - r.ratio if r else 0.0)
         x = np.arange(len(scenes)) + (j - (len(names) - 1) / 2) * width
-        ax.bar(x, ratios, width, color=colours[name], label=name)
+        ax.bar(x, ratio, width, color=colours[name], label=name,
+               yerr=[np.maximum(low, 0), np.maximum(high, 0)], capsize=2,
+               error_kw={"lw": 0.8})
     ax.axhline(1.0, color=colours.get(reference, "k"), lw=1, ls="--", label="path = 1")
     ax.set_yscale("log")
     ax.set_xticks(range(len(scenes)), [s.name for s in scenes], fontsize=8)
     ax.set_ylabel("efficiency / efficiency of path")
-    ax.set_title("Efficiency 1/(relMSE·time) relative to Mitsuba's path, at the top spp")
+    ax.set_title("Efficiency 1/(relMSE·time) relative to Mitsuba's path, at equal time")
     ax.grid(True, axis="y", which="both", alpha=0.3)
     ax.legend(fontsize=7)
     return _svg(fig)
 
 
-def colour_bar(vmin: float, vmax: float, cmap: str, label: str) -> str:
+def colour_bar(vmin: float, vmax: float, cmap: str, label: str, log: bool = True) -> str:
     fig, ax = plt.subplots(figsize=(4.5, 0.5))
-    norm = matplotlib.colors.LogNorm(vmin=vmin, vmax=vmax)
+    norm = (matplotlib.colors.LogNorm if log else matplotlib.colors.Normalize)(vmin=vmin,
+                                                                              vmax=vmax)
     fig.colorbar(matplotlib.cm.ScalarMappable(norm=norm, cmap=cmap), cax=ax,
                  orientation="horizontal", label=label)
     return _svg(fig)

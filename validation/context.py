@@ -56,8 +56,15 @@ class Context:
     rows: dict = field(default_factory=dict)          # tail_numbers …: name → CaseRow
     per_render: dict = field(default_factory=dict)    # tail_numbers: name → relMSE per seed
     sweep_rows: list = field(default_factory=list)    # sweep: SweepRow per estimator
-    equal_time: object = None       # equal_time: results.EqualTime
-    equal_units: dict = field(default_factory=dict)   # equal_time: name → Unit
+    display: "Context" = None       # speed.display: the scene at the display resolution
+    speed: object = None            # speed.measure_speed: results.Speed
+    timings: dict = None            # speed.time_costs: name → {spp: [seconds]}
+    costs: dict = field(default_factory=dict)         # speed.time_costs: name → CostModel
+    budget_scale: int = 1           # speed.time_costs: path_spp × this (fixed cost ≤ 10 %)
+    budgets: list = field(default_factory=list)       # speed.render_budgets: (T, path spp)
+    budget_units: list = field(default_factory=list)  # speed.render_budgets: name → Unit each
+    flip_maps: dict = field(default_factory=dict)     # speed.measure_speed: name → (H, W)
+    notes: list = field(default_factory=list)         # speed.*: what did not hold
     checks: list = field(default_factory=list)        # judge_*: results.Check
 
     @property
@@ -88,10 +95,11 @@ class Context:
         return d
 
     def derive(self, estimators=None, *, label: str = "", streams: dict | None = None,
-               **defines) -> "Context":
-        """The same plan with other $-parameters (a sweep point, the sunless
-        map) and, optionally, fewer estimators or other seed streams; nothing
-        measured yet."""
-        return Context(self.run, self.plan, self.id, list(estimators or self.estimators),
+               plan=None, **defines) -> "Context":
+        """The same plan (or ``plan``: another resolution) with other
+        $-parameters (a sweep point, the sunless map) and, optionally, fewer
+        estimators or other seed streams; nothing measured yet."""
+        return Context(self.run, plan or self.plan, self.id,
+                       list(estimators or self.estimators),
                        {**self.defines, **defines}, label or self.label,
                        dict(streams or self.streams))

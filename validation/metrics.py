@@ -13,10 +13,16 @@ linear radiance; means run over all pixels and colour channels.
             reference's own standard error
 * variance per render = mean over pixels of the sample variance over K renders
 * non-finite fraction = share of NaN/±Inf values (must be 0)
+* FLIP    = NVIDIA's perceptual difference (Andersson et al. 2020, 2021) in its
+            HDR mode, per pixel in [0, 1], and its mean: the ``flip-evaluator``
+            package, which tone-maps both images itself (ACES, exposures
+            from the reference), as its documentation prescribes for
+            linear HDR input; 67 pixels per degree (its default)
 """
 
 from __future__ import annotations
 
+import flip_evaluator
 import numpy as np
 
 EPSILON = 0.01
@@ -65,3 +71,20 @@ def bias(renders, r, reference_image_mean_se=0.0):
 def variance_per_render(renders) -> float:
     renders = _finite(renders)
     return float(renders.var(axis=0, ddof=1).mean()) if renders.shape[0] > 1 else float("nan")
+
+
+def flip(x, r) -> tuple[np.ndarray, float] | None:
+    """(H, W) HDR-FLIP map of ``x`` against ``r`` and its mean; None where FLIP
+    is undefined (a black reference: no exposure range to tone-map over).
+    Negative and non-finite values are clamped to 0 (FLIP takes radiance ≥ 0)."""
+    ref = np.maximum(_finite(r)[..., :3], 0.0).astype(np.float32)
+    test = np.maximum(_finite(x)[..., :3], 0.0).astype(np.float32)
+    if not np.any(ref > 0):
+        return None
+    try:
+        error, mean, _ = flip_evaluator.evaluate(np.ascontiguousarray(ref),
+                                                 np.ascontiguousarray(test), "HDR",
+                                                 applyMagma=False)
+    except SystemExit:          # flip_evaluator exits on inputs it cannot handle
+        return None
+    return np.asarray(error, np.float32)[..., 0], float(mean)

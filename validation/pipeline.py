@@ -4,8 +4,10 @@ For every scene of a profile and every case of its failures group, a
 :class:`~.context.Context` goes through a list of stages (:mod:`.stages`):
 
     scene comparison   load → choose estimators → K renders per rung of an spp
-                       ladder → reference → statistics → checks → equal time →
-                       images
+                       ladder → reference → statistics → checks → images; then
+                       the speed-and-images stage at the display resolution
+                       (speed.py): cost model → equal-time renders → reference
+                       → relMSE, efficiency, ranking, FLIP → images
     failure case       load → refusals → K seeds → reference → tail numbers →
                        bias test (replicated) → sun split → checks → evidence
     sweep              each parameter value: load → K seeds → reference →
@@ -29,12 +31,14 @@ from mcillum import files
 from mcillum.errors import Interrupted
 from mcillum.integrators import registry
 
-from . import profiles, renders, report, results, stages, statistics
+from . import profiles, renders, report, results, speed, stages, statistics
 from .context import Context, Run
 from .progress import Progress
 
 SCENE = (stages.load, stages.choose_estimators, stages.render_ladder, stages.build_reference,
-         stages.measure, stages.judge_scene, stages.equal_time, stages.save_images)
+         stages.measure, stages.judge_scene, stages.save_images)
+SPEED = (speed.display, speed.time_costs, speed.render_budgets, speed.display_reference,
+         speed.measure_speed, speed.save_display)
 CASE = (stages.load, stages.probe_refusals, stages.render_seeds, stages.build_reference,
         stages.tail_numbers, stages.test_bias, stages.split_sun, stages.judge_case,
         stages.save_evidence)
@@ -53,6 +57,8 @@ def compare_scene(run: Run, plan: profiles.SceneRun,
     """One scene of the profile: its result and its checks."""
     ctx = run_stages(SCENE, Context(run, plan, plan.scene, list(estimators),
                                     dict(plan.defines), label=plan.scene))
+    if plan.display is not None and registry.REFERENCE in ctx.integrators:
+        run_stages(SPEED, ctx)
     return stages.scene_result(ctx), ctx.checks
 
 
@@ -96,7 +102,9 @@ def validate(profile_name: str = "quick", scene_names=None, estimators=None,
         files.remove_stale_partials(d, recursive=True)
     json_path = os.path.join(out_dir, "results.json")
     before = _stamp(json_path)
-    total = sum(r.renders * len(estimators) * (len(r.ladder) + 1) for r in plans) + \
+    total = sum(r.renders * len(estimators) * len(r.ladder) for r in plans) + \
+        sum(r.display.renders * len(estimators) * len(r.display.path_spp)
+            for r in plans if r.display) + \
         sum(c.seeds * len(cases_estimators) * max(1, len(c.sweep[1]) if c.sweep else 1)
             for c in cases)
     bar = Progress(total, progress)

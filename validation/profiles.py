@@ -21,13 +21,27 @@ GROUPS = ("scenes", "failures")
 
 
 @dataclass(frozen=True)
+class Display:
+    """The speed-and-images stage of a scene (speed.py): the resolution a
+    person judges the images at, and the time budgets, each the time `path`
+    needs for one of ``path_spp`` (scaled up by powers of two until the
+    fixed cost of a render is at most 10 % of the smallest budget)."""
+
+    res: int
+    path_spp: tuple[int, ...] = (4, 8, 16)
+    renders: int = 4               # K seeds per estimator and budget
+    repeats: int = 5               # timed renders per estimator and spp (cost model)
+
+
+@dataclass(frozen=True)
 class SceneRun:
     scene: str
-    res: int
+    res: int                       # of the small-image statistics
     ladder: tuple[int, ...]        # spp values, increasing
     renders: int                   # K independent renders per (estimator, spp)
     max_depth: int = -1
     defines: dict = field(default_factory=dict)
+    display: Display | None = None
 
 
 @dataclass(frozen=True)
@@ -82,11 +96,11 @@ QUICK = Profile("quick", (
     # silhouette pixels hinge on rare sub-pixel hits: with 680 samples per
     # pixel (16², 1–64 spp × 8) emitter_sampling failed one at p = 2e-8 while
     # 32 × 1024 spp agreed with path; 8² × (4–256 spp) × 8 sees them
-    SceneRun("furnace_sphere", 8, (4, 16, 64, 256), 8, max_depth=2),
-    SceneRun("cap_plane", 8, (4, 16, 64, 256), 12, max_depth=2),
-    SceneRun("sky_sphere", 24, (4, 16, 64, 128), 12),
-    SceneRun("probe_spheres", 8, (16, 64, 256, 1024), 16),
-    SceneRun("cornell_box", 8, (32, 128, 512, 2048), 16),
+    SceneRun("furnace_sphere", 8, (4, 16, 64, 256), 8, max_depth=2, display=Display(128)),
+    SceneRun("cap_plane", 8, (4, 16, 64, 256), 12, max_depth=2, display=Display(128)),
+    SceneRun("sky_sphere", 24, (4, 16, 64, 128), 12, display=Display(128)),
+    SceneRun("probe_spheres", 8, (16, 64, 256, 1024), 16, display=Display(128)),
+    SceneRun("cornell_box", 8, (32, 128, 512, 2048), 16, display=Display(128)),
 ), reference_max_spp=1 << 18, reference_max_seconds=30.0, failures=(
     # small bright sources: 64 seeds each, as the stability suite asks
     FailureCase("heavy_tail", "sun_sky", 8, 16, 64),
@@ -101,16 +115,19 @@ QUICK = Profile("quick", (
                 label="zero_area_emitters"),
 ))
 
+FULL_DISPLAY = Display(256, (4, 16, 64), renders=6)
+
 FULL = Profile("full", (
-    SceneRun("furnace_sphere", 64, (1, 4, 16, 64, 256), 16, max_depth=2),
-    SceneRun("cap_plane", 16, (1, 4, 16, 64, 256, 1024), 16, max_depth=2),
-    SceneRun("sky_sphere", 64, (1, 4, 16, 64, 256), 16),
-    SceneRun("probe_spheres", 64, (1, 4, 16, 64, 256, 1024), 16),
-    SceneRun("glossy_sphere", 48, (4, 16, 64, 256, 1024), 16),
-    SceneRun("sun_sky", 48, (4, 16, 64, 256, 1024), 16),
-    SceneRun("cornell_box", 16, (16, 64, 256, 1024, 4096), 16),
-    SceneRun("phong_spheres", 32, (4, 16, 64, 256, 1024), 16),
-    SceneRun("glossy_phong", 32, (4, 16, 64, 256, 1024), 16),
+    SceneRun("furnace_sphere", 64, (1, 4, 16, 64, 256), 16, max_depth=2, display=FULL_DISPLAY),
+    SceneRun("cap_plane", 16, (1, 4, 16, 64, 256, 1024), 16, max_depth=2,
+             display=FULL_DISPLAY),
+    SceneRun("sky_sphere", 64, (1, 4, 16, 64, 256), 16, display=FULL_DISPLAY),
+    SceneRun("probe_spheres", 64, (1, 4, 16, 64, 256, 1024), 16, display=FULL_DISPLAY),
+    SceneRun("glossy_sphere", 48, (4, 16, 64, 256, 1024), 16, display=FULL_DISPLAY),
+    SceneRun("sun_sky", 48, (4, 16, 64, 256, 1024), 16, display=FULL_DISPLAY),
+    SceneRun("cornell_box", 16, (16, 64, 256, 1024, 4096), 16, display=FULL_DISPLAY),
+    SceneRun("phong_spheres", 32, (4, 16, 64, 256, 1024), 16, display=FULL_DISPLAY),
+    SceneRun("glossy_phong", 32, (4, 16, 64, 256, 1024), 16, display=FULL_DISPLAY),
 ), reference_max_spp=1 << 20, reference_max_seconds=600.0, failures=(
     FailureCase("heavy_tail", "sun_sky", 32, 16, 128),
     *(FailureCase("heavy_tail", "probe_spheres", 32, 16, 128, {"envmap": probe},

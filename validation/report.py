@@ -17,6 +17,7 @@ import base64
 import html
 import io
 import os
+import re
 import time
 
 import matplotlib
@@ -51,6 +52,12 @@ def error_rgb(err: np.ndarray, vmin: float, vmax: float) -> np.ndarray:
     return (rgba[..., :3] * 255).astype(np.uint8)
 
 
+def flip_rgb(flip: np.ndarray) -> np.ndarray:
+    """A FLIP map in [0, 1] on the linear magma scale (FLIP's own)."""
+    rgba = matplotlib.colormaps[ERROR_CMAP](np.clip(flip, 0.0, 1.0))
+    return (rgba[..., :3] * 255).astype(np.uint8)
+
+
 def worst_window(errors: list[np.ndarray]) -> tuple[int, int, int]:
     """(y, x, size) of the square window, a quarter of the image wide, with the
     highest summed relative error over all estimators."""
@@ -77,46 +84,119 @@ def _swatch(name: str, colours: dict) -> str:
             f"{html.escape(name)}")
 
 
-def _scene_section(scene: SceneResult, run_dir: str, colours: dict) -> str:
-    img_dir = os.path.join(run_dir, "images", scene.name)
-    ref, _ = files.read_exr(os.path.join(img_dir, "reference.exr"))
-    ev = images.exposure_for(ref)
-    ref_caption = f"reference (path)<br>{scene.reference.spp} spp, {scene.reference.seconds:.1f} s"
-    row_et, row_spp, errors, renders_ = [], [], [], []
-    for est in scene.estimators:
-        name, top = est.name, est.top
-        f_et = os.path.join(img_dir, f"{name}_equal_time.exr")
-        if os.path.isfile(f_et):
-            x, meta = files.read_exr(f_et)
-            row_et.append(_figure(_png_uri(_enlarge(images.tonemap(x, ev))),
-                                  f"{name}<br>equal time: {meta['spp']} spp, "
-                                  f"{meta['render_seconds'] * 1e3:.1f} ms"))
-        x, _ = files.read_exr(os.path.join(img_dir, f"{name}_spp{top.spp}.exr"))
-        row_spp.append(_figure(_png_uri(_enlarge(images.tonemap(x, ev))),
-                               f"{name}<br>equal spp: {top.spp} spp, "
-                               f"{top.median_seconds * 1e3:.1f} ms"))
-        errors.append(metrics.relative_error_map(x, ref))
-        renders_.append(x)
-    names = [e.name for e in scene.estimators]
+def _img(rgb8: np.ndarray, caption: str, side: int = MIN_SIDE) -> str:
+    """A figure of an 8-bit image at least ``side`` pixels wide on screen:
+    large images as they are (zoomed by CSS), small ones enlarged first."""
+    h, w = rgb8.shape[:2]
+    if max(h, w) < 64:                      # thumbnails: enlarge the pixels themselves
+        rgb8 = _enlarge(rgb8, side)
+        h, w = rgb8.shape[:2]
+    zoom = max(1, int(np.ceil(side / max(h, w))))
+    alt = html.escape(re.sub(r"<[^>]+>", " ", caption))
+    return (f'<figure><img src="{_png_uri(rgb8)}" alt="{alt}" '
+            f'width="{w * zoom}" height="{h * zoom}"><figcaption>{caption}</figcaption></figure>')
 
+
+def _scene_section(scene: SceneResult, run_dir: str, colours: dict) -> str:
+    speed = _speed_section(scene, run_dir, colours) if scene.speed else ""
+    return f"""
+<section id="{scene.name}">
+<h2>{html.escape(scene.name)} <small>max_depth {scene.max_depth}</small></h2>
+<p class=desc>{html.escape(scene.summary)}</p>
+{speed}
+{_statistics_section(scene, run_dir, colours)}
+</section>"""
+
+
+def _speed_section(scene: SceneResult, run_dir: str, colours: dict) -> str:
+    """The speed-and-images stage: equal-time images at the display
+    resolution, error and FLIP maps, the worst region, accuracy against time."""
+    sp = scene.speed
+    d = os.path.join(run_dir, "images", scene.name, "display")
+    ref, _ = files.read_exr(os.path.join(d, "reference.exr"))
+    ev = images.exposure_for(ref)
+    top = sp.budgets[-1]
+    names = list(top.estimators)
+    shots, flips = {}, {}
+    for n in names:
+        shots[n] = files.read_exr(os.path.join(d, f"{n}.exr"))
+        if not np.isnan(sp.mean_flip.get(n, np.nan)):
+            flips[n] = files.read_exr(os.path.join(d, f"{n}.exr"), "flip")[0][..., 0]
+    side = 256                              # 128² at 2×, 256² as it is
+    row = [_img(images.tonemap(ref, ev), f"reference (path)<br>{sp.reference.spp} spp", side)]
+    for n in names:
+        x, meta = shots[n]
+        flip = sp.mean_flip.get(n, np.nan)
+        row.append(_img(images.tonemap(x, ev), f"{_swatch(n, colours)}<br>{meta['spp']} spp, "
+                        f"{meta['render_seconds'] * 1e3:.0f} ms"
+                        + ("" if np.isnan(flip) else f", FLIP {flip:.3f}"), side))
+    errors = [metrics.relative_error_map(shots[n][0], ref) for n in names]
     positive = np.concatenate([e[e > 0].ravel() for e in errors] + [np.array([1e-3])])
     vmax = max(float(np.percentile(positive, 99)), 1e-2)
     vmin = vmax / 1e3
-    err_row = [_figure(_png_uri(_enlarge(error_rgb(e, vmin, vmax))),
-                       f"{n}: |x−r|/(|r|+{metrics.EPSILON}), mean {e.mean():.3g}")
+    err_row = [_img(error_rgb(e, vmin, vmax), f"{n}: mean {e.mean():.3g}", side)
                for n, e in zip(names, errors)]
-    bar = charts.colour_bar(vmin, vmax, ERROR_CMAP, "relative error (shared scale)")
-
+    flip_row = [_img(flip_rgb(flips[n]), f"{n}: mean FLIP {sp.mean_flip[n]:.3f}", side)
+                for n in names if n in flips]
     y, x0, size = worst_window(errors)
     crop = lambda a: a[y:y + size, x0:x0 + size]  # noqa: E731
-    crops = [_figure(_png_uri(_enlarge(images.tonemap(crop(ref), ev))), "reference")]
-    for name, x in zip(names, renders_):
-        crops.append(_figure(_png_uri(_enlarge(images.tonemap(crop(x), ev))), name))
+    crops = [_img(images.tonemap(crop(ref), ev), "reference", side // 2)]
+    crops += [_img(images.tonemap(crop(shots[n][0]), ev), n, side // 2) for n in names]
+    notes = "".join(f"<li>{html.escape(n)}</li>" for n in sp.notes)
+    ref_info = sp.reference
+    capped = f" — capped ({html.escape(ref_info.capped)})" if ref_info.capped else ""
+    return f"""
+<h3>Equal time at {sp.res}²: {top.seconds * 1e3:.0f} ms per render</h3>
+<p>Every estimator got the time Mitsuba's <code>path</code> needs for {top.path_spp} spp;
+its spp come from its own cost model t = a + b·spp. Reference: <code>path</code>,
+{ref_info.spp} spp in {ref_info.passes} passes{capped}. Tone mapping for every image:
+x·2<sup>{ev:+.1f}</sup>, clipped to [0, 1], sRGB. Captions: spp and the measured time of the
+render shown.</p>
+<div class=row>{''.join(row)}</div>
+<h4>Relative error |x−r|/(|r|+{metrics.EPSILON}) of these renders</h4>
+<div class=row>{''.join(err_row)}</div>
+<div class=bar>{charts.colour_bar(vmin, vmax, ERROR_CMAP, "relative error (shared scale)")}</div>
+<h4>FLIP (HDR mode: flip-evaluator tone-maps both images, ACES, exposures from the
+reference; 0 = no visible difference, 1 = the largest)</h4>
+<div class=row>{''.join(flip_row) or '<p>FLIP is undefined here: the reference is black.</p>'}</div>
+<div class=bar>{charts.colour_bar(0.0, 1.0, ERROR_CMAP, "FLIP", log=False)}</div>
+<h4>Worst region ({size}×{size} px at x={x0}, y={y}, by summed relative error)</h4>
+<div class=row>{''.join(crops)}</div>
+<h4>Accuracy against time</h4>
+<div class=row>{charts.error_vs_time(scene, colours)}</div>
+{_speed_table(sp, colours)}
+{'<ul class=notes>' + notes + '</ul>' if notes else ''}"""
 
+
+def _speed_table(sp, colours: dict) -> str:
+    top = sp.budgets[-1]
+    rank = {p.estimator: p for p in sp.ranking}
+    rows = []
+    for n, run in top.estimators.items():
+        c, r, p = sp.cost_model[n], sp.efficiency_vs_path[n], rank[n]
+        tied = f" (tie: {', '.join(p.tied_with)})" if p.tied_with else ""
+        wall = float(np.median(run.wall_seconds)) * 1e3
+        rows.append(
+            f"<tr><td>{_swatch(n, colours)}</td><td>{p.rank}{html.escape(tied)}</td>"
+            f"<td>{_fmt(r.ratio)} [{_fmt(r.ci.low)}, {_fmt(r.ci.high)}]</td>"
+            f"<td>{_fmt(run.relmse)} [{_fmt(run.relmse_ci.low)}, {_fmt(run.relmse_ci.high)}]</td>"
+            f"<td>{run.spp}</td><td class={'ok' if run.on_budget else 'warn'}>{wall:.0f}</td>"
+            f"<td>{c.fixed_s * 1e3:.1f} [{c.fixed_s_ci.low * 1e3:.1f}, "
+            f"{c.fixed_s_ci.high * 1e3:.1f}]</td>"
+            f"<td>{c.per_spp_s * 1e3:.2f} [{c.per_spp_s_ci.low * 1e3:.2f}, "
+            f"{c.per_spp_s_ci.high * 1e3:.2f}]</td></tr>")
+    return f"""<p>At {top.seconds * 1e3:.0f} ms, most efficient first ("=": the 95 % intervals
+overlap, a tie): <b>{html.escape(results.ranking_text(sp.ranking))}</b>.</p>
+<table><tr><th>estimator</th><th>rank</th><th>efficiency ÷ path [95 % CI]</th>
+<th>relMSE [95 % CI]</th><th>spp</th><th>median ms (K = {sp.renders})</th>
+<th>fixed cost a, ms [95 % CI]</th><th>per spp b, ms [95 % CI]</th></tr>
+{''.join(rows)}</table>"""
+
+
+def _statistics_section(scene: SceneResult, run_dir: str, colours: dict) -> str:
+    """The small-image statistics: unbiasedness, convergence, the ladder."""
     rows = []
     best_rel = min(e.top.relmse for e in scene.estimators)
-    best_eff = max(e.top.efficiency for e in scene.estimators)
-    best_sps = max(e.top.samples_per_second for e in scene.estimators)
     for est in scene.estimators:
         top, u, c = est.top, est.unbiasedness, est.convergence
         slope = "exact" if c.exact else f"{c.slope:+.2f} [{c.low:+.2f}, {c.high:+.2f}]"
@@ -126,40 +206,18 @@ def _scene_section(scene: SceneResult, run_dir: str, colours: dict) -> str:
             f"<td>{top.bias:+.2e} ± {top.bias_se:.1e}</td>"
             f"<td class={'ok' if u.passed else 'bad'}>{'pass' if u.passed else 'FAIL'} "
             f"({100 * u.pass_fraction:.1f} %)</td>"
-            f"<td>{slope}</td>"
-            f"<td>{top.samples_per_second / 1e6:.2f} M ({top.samples_per_second / best_sps:.2f}×)</td>"
-            f"<td>{_fmt(top.efficiency)} ({top.efficiency / best_eff:.2g}×)</td></tr>")
-    et, et_line = scene.equal_time, ""
-    if et:
-        measured = ", ".join(et.measured_ranking or [])
-        et_line = (f"<p>At equal time ({et.budget_seconds * 1e3:.1f} ms per render) the "
-                   f"fitted curves predict, most accurate first: "
-                   f"<b>{', '.join(et.predicted_ranking)}</b>; renders at that budget "
-                   f"measured: <b>{measured}</b>"
-                   f"{'' if et.agrees else ' (the winner differs from the prediction)'}.</p>")
+            f"<td>{slope}</td></tr>")
     ref_info = scene.reference
     capped = f" — capped ({ref_info.capped})" if ref_info.capped else ""
+    spp = ", ".join(str(s) for s in scene.ladder)
     return f"""
-<section id="{scene.name}">
-<h2>{html.escape(scene.name)} <small>{scene.res}², max_depth {scene.max_depth}</small></h2>
-<p class=desc>{html.escape(scene.summary)}</p>
-<p>Reference: Mitsuba's <code>path</code>, {ref_info.spp} spp in {ref_info.passes} passes{capped}.
-Tone mapping for every image below: x·2<sup>{ev:+.1f}</sup>, clipped to [0, 1], sRGB.</p>
-<h3>Images: equal time, then equal spp</h3>
-<div class=row>{_figure(_png_uri(_enlarge(images.tonemap(ref, ev))), ref_caption)}{''.join(row_et)}</div>
-<div class=row>{''.join(row_spp)}</div>
-<h3>Relative error at equal spp</h3>
-<div class=row>{''.join(err_row)}</div>
-<div class=bar>{bar}</div>
-<h3>Accuracy against speed</h3>
-<div class=row>{charts.error_vs_time(scene, colours)}{charts.error_vs_spp(scene, colours)}</div>
-{et_line}
-<table><tr><th>estimator</th><th>relMSE (÷ best)</th><th>bias ± se</th><th>unbiased (pixels passing)</th>
-<th>slope [95 % CI]</th><th>samples/s (÷ best)</th><th>efficiency (÷ best)</th></tr>
+<h3>Statistics at {scene.res}² ({scene.renders} renders per estimator at {spp} spp)</h3>
+<p>Small images, many renders: enough samples per pixel for per-pixel tests. Reference:
+<code>path</code>, {ref_info.spp} spp in {ref_info.passes} passes{capped}.</p>
+<table><tr><th>estimator</th><th>relMSE at {scene.ladder[-1]} spp (÷ best)</th><th>bias ± se</th>
+<th>unbiased (pixels passing)</th><th>slope [95 % CI]</th></tr>
 {''.join(rows)}</table>
-<h3>Worst region ({size}×{size} px at x={x0}, y={y}), equal spp</h3>
-<div class=row>{''.join(crops)}</div>
-</section>"""
+<div class=row>{charts.error_vs_spp(scene, colours)}</div>"""
 
 
 def _failures(res: Results, run_dir: str, colours: dict) -> str:

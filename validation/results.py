@@ -37,7 +37,9 @@ SCHEMA = "mcillum.results"
 VERSION = 1
 #: 1: ``minor_version``, ``estimator_facts``, ``firefly_fraction`` per run, and
 #: in every failure-case row ``tail_ratio`` and the NaN/negative counts.
-MINOR_VERSION = 1
+#: 2: per scene ``speed`` (the speed-and-images stage at the display
+#: resolution); the small-image ``equal_time`` is no longer written.
+MINOR_VERSION = 2
 SCHEMA_FILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results.schema.json")
 
 DEFINITIONS = {
@@ -157,19 +159,77 @@ class ReferenceSummary:
     key: str
 
 
-@dataclass
-class EqualTime:
-    """A common time budget, the ranking the fitted curves predict there, and
-    the ranking renders at that budget measured."""
+class Interval(typing.NamedTuple):
+    """A 95 % confidence interval; JSON: [low, high]."""
 
-    budget_seconds: float
-    spp: dict[str, int]
-    predicted_relmse: dict[str, float]
-    predicted_ranking: list[str]
-    measured_relmse: dict[str, float] | None = None
-    measured_seconds: dict[str, float] | None = None
-    measured_ranking: list[str] | None = None
-    agrees: bool | None = None
+    low: float
+    high: float
+
+
+@dataclass
+class CostModel:
+    """t(spp) = fixed_s + per_spp_s · spp of warm renders at the display
+    resolution (see costs.py), with 95 % bootstrap intervals."""
+
+    fixed_s: float
+    per_spp_s: float
+    fixed_s_ci: Interval
+    per_spp_s_ci: Interval
+    timings: dict[str, list[float]]     # spp → wall seconds of each timed repeat
+
+
+@dataclass
+class BudgetRun:
+    """K renders of one estimator at one time budget."""
+
+    spp: int
+    wall_seconds: list[float]
+    relmse: float                       # mean over the K renders
+    relmse_ci: Interval
+    relmse_per_render: list[float]
+    on_budget: bool                     # median wall time within ±10 % of the budget
+    note: str | None = _optional()      # why not, where it is not
+
+
+@dataclass
+class Budget:
+    """One equal-time budget: the time `path` needs for ``path_spp``."""
+
+    seconds: float
+    path_spp: int
+    estimators: dict[str, BudgetRun]
+    reference_relmse: float             # relMSE the reference's own noise adds
+
+
+@dataclass
+class Ratio:
+    ratio: float
+    ci: Interval
+
+
+@dataclass
+class Placement:
+    """One estimator's place in a ranking: 1 + the number of estimators whose
+    interval lies wholly above its own; those it cannot be told from."""
+
+    estimator: str
+    rank: int
+    tied_with: list[str]
+
+
+@dataclass
+class Speed:
+    """The speed-and-images stage of one scene (speed.py)."""
+
+    res: int
+    renders: int                        # K per estimator and budget
+    cost_model: dict[str, CostModel]
+    budgets: list[Budget]
+    efficiency_vs_path: dict[str, Ratio]   # at the largest budget
+    ranking: list[Placement]               # by efficiency at the largest budget
+    reference: ReferenceSummary
+    mean_flip: dict[str, float]            # at the largest budget, first render
+    notes: list[str] = field(default_factory=list)   # overhead and budget misses
 
 
 @dataclass
@@ -183,7 +243,7 @@ class SceneResult:
     renders: int
     reference: ReferenceSummary
     estimators: list[EstimatorResult]
-    equal_time: EqualTime | None
+    speed: Speed | None = _optional()
 
 
 # ------------------------------ Failure cases ---------------------------------
@@ -391,6 +451,8 @@ def _decode(hint, data):
         return None if data is None or empty else _decode(args[0], data)
     if hint is float and data is None:
         return math.nan                     # written as null (see the module doc)
+    if isinstance(hint, type) and issubclass(hint, tuple) and hasattr(hint, "_fields"):
+        return hint(*(math.nan if v is None else v for v in data))   # an Interval
     if dataclasses.is_dataclass(hint):
         return from_json(hint, data)
     if origin is list:
@@ -512,12 +574,8 @@ def summary(results: Results) -> str:
                 f"{'yes' if u.passed else '**NO**'} ({100 * u.pass_fraction:.1f}) | "
                 + ("exact" if c.exact else f"{c.slope:+.2f} [{c.low:+.2f}, {c.high:+.2f}]")
                 + f" | {top.samples_per_second / 1e6:.2f} M | {top.efficiency:.3g} |")
-        et = scene.equal_time
-        if et:
-            measured = ", ".join(et.measured_ranking) if et.measured_ranking else "—"
-            lines += ["", f"Equal time ({et.budget_seconds * 1e3:.1f} ms per render): "
-                          f"predicted best first: {', '.join(et.predicted_ranking)}; "
-                          f"measured: {measured}."]
+        if scene.speed:
+            lines += ["", *speed_summary(scene.speed)]
         lines.append("")
     if results.failures:
         lines += ["## Where methods fail", "",
@@ -531,6 +589,35 @@ def summary(results: Results) -> str:
     if failed:
         lines += ["## Failed checks", ""] + [f"- `{c.id}`: {c.message}" for c in failed]
     return "\n".join(lines) + "\n"
+
+
+def ranking_text(ranking: list[Placement]) -> str:
+    """"a > b = c > d": ">" where the intervals separate, "=" for a tie."""
+    out = ""
+    for i, p in enumerate(ranking):
+        if i:
+            tied = ranking[i - 1].estimator in p.tied_with
+            out += " = " if tied else " > "
+        out += p.estimator
+    return out
+
+
+def speed_summary(speed: Speed) -> list[str]:
+    """The speed stage's lines of summary.md: budgets, ratios, ranking, notes."""
+    top = speed.budgets[-1]
+    lines = [f"Equal time at {speed.res}² ({', '.join(f'{b.seconds * 1e3:.0f}' for b in speed.budgets)}"
+             f" ms per render, K = {speed.renders}); at {top.seconds * 1e3:.0f} ms, most "
+             f"efficient first: {ranking_text(speed.ranking)}.", "",
+             "| estimator | spp | wall ms (median) | relMSE [95% CI] | efficiency ÷ path [95% CI] |",
+             "|---|---|---|---|---|"]
+    for name, run in top.estimators.items():
+        r = speed.efficiency_vs_path.get(name)
+        ratio = f"{r.ratio:.3g} [{r.ci.low:.3g}, {r.ci.high:.3g}]" if r else "—"
+        wall = sorted(run.wall_seconds)[len(run.wall_seconds) // 2] * 1e3
+        lines.append(f"| {name} | {run.spp} | {wall:.0f}{'' if run.on_budget else ' (off budget)'}"
+                     f" | {run.relmse:.3g} [{run.relmse_ci.low:.3g}, {run.relmse_ci.high:.3g}]"
+                     f" | {ratio} |")
+    return lines + [f"- {n}" for n in speed.notes]
 
 
 def _failure_cells(case: CaseResult, est) -> str:

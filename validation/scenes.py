@@ -48,6 +48,19 @@ def defaults(path: str) -> dict[str, str]:
         return dict(_DEFAULT.findall(f.read()))
 
 
+_PLACEHOLDER = re.compile(r"\$([A-Za-z_]\w*)")
+
+
+def expand(path: str, text: str, defines: dict) -> str:
+    """``text`` (a scene's summary) with each ``$name`` replaced by the value
+    it is rendered with: ``defines``, else the file's default. A map given as
+    a file shows as its name (``sunrise``, not a cache path)."""
+    values = {**defaults(path), **{k: str(v) for k, v in defines.items()}}
+    if "envmap" in values:
+        values["envmap"] = os.path.splitext(os.path.basename(values["envmap"]))[0]
+    return _PLACEHOLDER.sub(lambda m: values.get(m.group(1), m.group(0)), text)
+
+
 def _contains(header: str, path: str) -> tuple[str, ...]:
     m = re.search(r"^\s*Contains:\s*(.+)$", header, re.M)
     kinds = tuple(m.group(1).split()) if m else ()

@@ -11,8 +11,9 @@ allocator existed, so a validation run renders the same images (`mcillum
 bench`, which used 0, 1, …, has its own stream now):
 
     ladder           rung r, render i  →  10 000·r + i       (50 rungs × 10 000)
-    equal_time       500 000 + i
-    refusal_probe    699 999             (the 1-spp render that asks for a refusal)
+    speed            budget j, render i  →  500 000 + 10 000·j + i  (the speed stage's
+                     equal-time renders at the display resolution; 9 budgets)
+    speed_timing     590 000 + i         (its timed renders for the cost model)
     failure          700 000 + i         (K seeds per failure case)
     sunless          750 000 + i         (the same case on its map without the sun)
     replication      800 000 + i         (fresh renders that must repeat a rejection)
@@ -69,8 +70,8 @@ class Layout:
 #: Every stream: name → where its seeds lie. Seeds are 32-bit (Mitsuba's).
 STREAMS = {
     "ladder": Layout(0, 10_000, blocks=50),
-    "equal_time": Layout(500_000, 100_000),
-    "refusal_probe": Layout(699_999, 1),
+    "speed": Layout(500_000, 10_000, blocks=9),
+    "speed_timing": Layout(590_000, 10_000),
     "failure": Layout(700_000, 50_000),
     "sunless": Layout(750_000, 50_000),
     "replication": Layout(800_000, 50_000),

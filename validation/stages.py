@@ -10,6 +10,8 @@ verdicts are the checks' (:mod:`~mcillum.validation.checks`).
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 
 import numpy as np
@@ -50,7 +52,7 @@ def choose_estimators(ctx) -> None:
 
 
 def probe_refusals(ctx) -> None:
-    """Ask each estimator, with a 1-spp render, whether it refuses the scene.
+    """Ask each estimator whether it refuses the scene.
     In the ``unreachable`` group a refusing estimator then renders with
     ``allow_unreachable=true``, so that the bias the user opts into is measured."""
     for name in ctx.estimators:
@@ -65,46 +67,60 @@ def probe_refusals(ctx) -> None:
 
 
 def _refusal(ctx, name: str) -> UnreachableContentError | None:
+    """The estimator's own scene check, as its render would run it first
+    (nothing is rendered)."""
+    integrator = renders.make_integrator(name, ctx.params)
+    if not registry.is_estimator(integrator):
+        return None
     try:
-        renders.render(ctx.scene, renders.make_integrator(name, ctx.params), 1,
-                       seeds.stream("refusal_probe").seed())
-    except Exception as exc:  # noqa: BLE001  (mi.render wraps the plugin's error)
-        cause = root_cause(exc)
-        if isinstance(cause, UnreachableContentError):
-            return cause
-        raise
+        integrator.check_scene(ctx.scene)
+    except UnreachableContentError as err:
+        return err
     return None
 
 
 # ----------------------------------- Renders ------------------------------------
 
 def _compile(ctx) -> None:
+    """Each integrator's first render (its kernel compiles or loads from
+    Dr.Jit's cache), timed apart; once per context, and only when something
+    is rendered."""
+    if ctx.compile_seconds:
+        return
     seed = seeds.stream("compile").seed()
     ctx.compile_seconds = {n: renders.render(ctx.scene, integ, 1, seed).seconds
                            for n, integ in ctx.integrators.items()}
 
 
+def _file(ctx, what: str) -> str:
+    """A file name for ``what`` that differs between contexts sharing an id
+    (the points of a sweep, a case's sunless twin)."""
+    tag = json.dumps(ctx.defines, sort_keys=True, default=str)
+    return f"{what}-{hashlib.sha256(tag.encode()).hexdigest()[:8]}"
+
+
 def render_ladder(ctx) -> None:
     """K renders per estimator on every rung of the plan's spp ladder
-    (resumable: sweeps.py keeps finished rungs)."""
-    _compile(ctx)
-    ctx.units = sweeps.run(ctx)
+    (kept: sweeps.py)."""
+    ctx.units = sweeps.run(ctx, _compile)
 
 
 def render_seeds(ctx) -> None:
-    """K renders per estimator at the plan's spp (the case's seed stream)."""
-    _compile(ctx)
+    """K renders per estimator at the plan's spp (the case's seed stream; kept)."""
     spp, k = ctx.plan.spp, ctx.plan.seeds
-    ctx.units = {spp: sweeps.interleaved(
-        ctx.scene, ctx.integrators, dict.fromkeys(ctx.integrators, spp), k,
-        seeds.stream(ctx.streams["renders"]).take(k), ctx.run.step, ctx.label)}
+    name = ctx.streams["renders"]
+    ctx.units = {spp: sweeps.kept(ctx, _file(ctx, name), name, ctx.integrators,
+                                  dict.fromkeys(ctx.integrators, spp), k,
+                                  seeds.stream(name).take(k), _compile, ctx.label)}
 
 
 def _fresh(ctx, name: str) -> np.ndarray:
-    """K new renders of one estimator (the context's replication stream)."""
+    """K new renders of one estimator (the context's replication stream; kept)."""
     spp, k = ctx.plan.spp, ctx.plan.seeds
-    return sweeps.interleaved(ctx.scene, {name: ctx.integrators[name]}, {name: spp}, k,
-                              seeds.stream(ctx.streams["replication"]).take(k))[name].images
+    stream = ctx.streams["replication"]
+    return sweeps.kept(ctx, _file(ctx, f"{stream}-{name}"), stream,
+                       {name: ctx.integrators[name]}, {name: spp}, k,
+                       seeds.stream(stream).take(k), label=ctx.label)[name].images
 
 
 # ---------------------------------- Reference -----------------------------------
@@ -130,7 +146,7 @@ def measure(ctx) -> None:
         runs = [analysis.run_stats(ctx.units[spp][name], ref) for spp in ladder]
         stacks = {spp: ctx.units[spp][name].images for spp in ladder}
         ctx.measured[name] = EstimatorResult(
-            name, ctx.params, ctx.compile_seconds[name], runs,
+            name, ctx.params, ctx.compile_seconds.get(name, float("nan")), runs,
             analysis.unbiasedness(stacks, ref, runs, ALPHA), analysis.convergence(runs))
 
 
@@ -138,23 +154,9 @@ def judge_scene(ctx) -> None:
     ctx.checks = checks.run(checks.SCENE, ctx, ctx.units, ctx.reference, by_estimator=True)
 
 
-def equal_time(ctx) -> None:
-    """Predict a ranking at a common time budget, then render each estimator at
-    the spp that fits in it and measure (:func:`analysis.equal_time_plan`)."""
-    plan = analysis.equal_time_plan({n: e.runs for n, e in ctx.measured.items()})
-    if plan is None:
-        return
-    plan.spp = {n: min(s, 4 * ctx.plan.ladder[-1]) for n, s in plan.spp.items()}
-    k = max(4, ctx.plan.renders // 2)
-    ctx.equal_units = sweeps.interleaved(ctx.scene, ctx.integrators, plan.spp, k,
-                                         seeds.stream("equal_time").take(k), ctx.run.step,
-                                         "equal time")
-    ctx.equal_time = analysis.equal_time_measure(plan, ctx.equal_units, ctx.reference)
-
-
 def save_images(ctx) -> None:
     """images/<scene>/: the reference and its variance; per estimator one
-    render and the K-render mean at the top spp, and one equal-time render."""
+    render and the K-render mean at the top spp."""
     d, ref = ctx.images_dir, ctx.reference
     files.write_exr(f"{d}/reference.exr", ref.mean.astype(np.float32),
                     {"spp": ref.spp, "passes": ref.passes})
@@ -169,23 +171,24 @@ def save_images(ctx) -> None:
                          "seed": seeds.stream("ladder", rung).seed(0)})
         files.write_exr(f"{d}/{name}_spp{top}_mean.exr", images.mean(axis=0),
                         {"integrator": name, "spp": top, "renders": len(images)})
-    for name, unit in ctx.equal_units.items():
-        files.write_exr(f"{d}/{name}_equal_time.exr", unit.images[0],
-                        {"integrator": name, "spp": unit.spp,
-                         "seed": seeds.stream("equal_time").seed(0),
-                         "render_seconds": float(unit.seconds[0])})
 
 
 def scene_result(ctx) -> SceneResult:
     ref, info = ctx.reference, ctx.info
     return SceneResult(
-        ctx.id, os.path.relpath(info.path, os.getcwd()), info.summary, ctx.res, ctx.max_depth,
+        ctx.id, os.path.relpath(info.path, os.getcwd()), describe(ctx), ctx.res, ctx.max_depth,
         list(ctx.plan.ladder), ctx.plan.renders,
         ReferenceSummary(REFERENCE, ref.spp, ref.passes, ref.spp_per_pass, ref.seconds,
                          ref.cached_passes, ref.meta.get("rendered_passes", 0),
                          ref.meta.get("target_variance", 0.0),
                          float(ref.variance_of_mean.mean()), ref.capped, ref.key),
-        list(ctx.measured.values()), ctx.equal_time)
+        list(ctx.measured.values()), ctx.speed)
+
+
+def describe(ctx) -> str:
+    """The scene header's summary with the $-parameters it was rendered with
+    (a map by the name it was given, not the checked file it became)."""
+    return scenes.expand(ctx.info.path, ctx.info.summary, ctx.defines)
 
 
 # ------------------------------- Failure cases ----------------------------------
@@ -308,7 +311,7 @@ def case_result(ctx) -> CaseResult:
     swept = bool(p.sweep)
     return CaseResult(
         p.id, p.group, p.label or p.scene, p.scene, dict(p.defines), p.res, p.spp, p.seeds,
-        p.max_depth, ctx.info.summary, ctx.sweep_rows if swept else list(ctx.rows.values()),
+        p.max_depth, describe(ctx), ctx.sweep_rows if swept else list(ctx.rows.values()),
         reference=None if swept else CaseReference(ctx.reference.spp, ctx.reference.capped),
         sweep=Sweep(p.sweep[0], list(p.sweep[1])) if swept else None)
 

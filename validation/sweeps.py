@@ -4,9 +4,10 @@
 comparison: K rounds, the integrators rotated every round (A B C, then
 B C A, …) so that machine drift hits all of them alike; render i of every
 integrator uses seed ``seeds[i]``. :func:`run` walks a scene's spp ladder with
-it, one seed block per rung (seeds.py), and saves each finished rung to
-``<out>/renders/<scene>/spp<N>.npz`` (atomically) under a key: a re-run with
-the same key loads it instead of rendering, so an interrupted run resumes.
+it, one seed block per rung (seeds.py). :func:`kept` saves every finished set
+of renders to ``<out>/renders/<id>/<file>.npz`` (atomically) under a key: a
+re-run with the same key loads it instead of rendering, so an interrupted run
+resumes and a finished one renders nothing.
 """
 
 from __future__ import annotations
@@ -59,28 +60,39 @@ def interleaved(scene, integrators: dict, spp: dict[str, int], k: int, seeds: li
     return {n: Unit(n, spp[n], np.stack(shots[n]), times[n]) for n in names}
 
 
-# ------------------------------- A ladder ---------------------------------------
+# ------------------------------- Kept renders -----------------------------------
 
-def _key(scene_key: str, estimators, spp: int, k: int, rung: int) -> str:
-    return hashlib.sha256(json.dumps([scene_key, list(estimators), spp, k, rung, 2]).encode()
-                          ).hexdigest()[:24]
+def _key(ctx, names, spp: dict, seed_list, tag: str) -> str:
+    """Everything that decides the images: scene content, estimators and
+    their parameters, spp, seeds."""
+    opted = sorted(ctx.refused)             # rendered with allow_unreachable
+    return hashlib.sha256(json.dumps(
+        [ctx.scene_key, list(names), opted, spp, list(seed_list), tag, FORMAT]).encode()
+    ).hexdigest()[:24]
+
+
+FORMAT = 3
 
 
 def _load(path: str, key: str):
+    """(units, compile seconds) kept at ``path`` under ``key``, else None."""
     try:
         with np.load(path, allow_pickle=False) as z:
             if str(z["key"]) != key:
                 return None
             names = [str(n) for n in z["estimators"]]
-            return {n: Unit(n, int(z["spp"]), z[f"images_{i}"], z[f"seconds_{i}"].tolist())
-                    for i, n in enumerate(names)}
+            units = {n: Unit(n, int(z["spp"][i]), z[f"images_{i}"], z[f"seconds_{i}"].tolist())
+                     for i, n in enumerate(names)}
+            return units, dict(zip(names, z["compile"].tolist()))
     except Exception:  # absent, partial or from another version: render anew
         return None
 
 
-def _save(path: str, key: str, spp: int, units: dict[str, Unit]) -> None:
+def _save(path: str, key: str, units: dict[str, Unit], compile_seconds: dict) -> None:
     os.makedirs(os.path.dirname(path), exist_ok=True)
-    arrays = {"key": key, "spp": spp, "estimators": np.array(list(units))}
+    arrays = {"key": key, "estimators": np.array(list(units)),
+              "spp": np.array([u.spp for u in units.values()]),
+              "compile": np.array([compile_seconds.get(n, np.nan) for n in units])}
     for i, u in enumerate(units.values()):
         arrays[f"images_{i}"] = u.images
         arrays[f"seconds_{i}"] = np.array(u.seconds)
@@ -89,22 +101,39 @@ def _save(path: str, key: str, spp: int, units: dict[str, Unit]) -> None:
             np.savez_compressed(f, **arrays)
 
 
-def run(ctx) -> dict[int, dict[str, Unit]]:
+def kept(ctx, file: str, tag: str, integrators: dict, spp: dict[str, int], k: int,
+         seed_list: list[int], compile_=None, label: str = "") -> dict[str, Unit]:
+    """:func:`interleaved`, kept in ``<out>/renders/<id>/<file>.npz`` under a
+    key of everything that decides the images: a re-run with the same key
+    loads them (and the compile times recorded with them) instead of
+    rendering. ``compile_(ctx)`` runs before the first render that is not
+    kept."""
+    key = _key(ctx, list(integrators), spp, seed_list[:k], tag)
+    path = os.path.join(ctx.run.out_dir, "renders", ctx.id, f"{file}.npz")
+    found = _load(path, key)
+    if found is not None:
+        units, compiled = found
+        for n, s in compiled.items():
+            ctx.compile_seconds.setdefault(n, s)
+        ctx.run.step(f"{label} {file}: kept", k * len(integrators))
+        return units
+    if compile_ is not None:
+        compile_(ctx)
+    units = interleaved(ctx.scene, integrators, spp, k, seed_list, ctx.run.step, label)
+    _save(path, key, units, ctx.compile_seconds)
+    return units
+
+
+# ------------------------------- A ladder ---------------------------------------
+
+def run(ctx, compile_=None) -> dict[int, dict[str, Unit]]:
     """Every rung of ``ctx.plan.ladder``, K = ``ctx.plan.renders`` renders per
-    estimator of ``ctx.integrators``: {spp: {estimator: Unit}}."""
+    estimator of ``ctx.integrators``: {spp: {estimator: Unit}}; each rung is
+    kept (:func:`kept`) as ``spp<N>.npz``."""
     names = list(ctx.integrators)
     k = ctx.plan.renders
-    result = {}
-    for rung, spp in enumerate(ctx.plan.ladder):
-        key = _key(ctx.scene_key, names, spp, k, rung)
-        path = os.path.join(ctx.run.out_dir, "renders", ctx.id, f"spp{spp}.npz")
-        cached = _load(path, key)
-        if cached is not None:
-            result[spp] = cached
-            ctx.run.step(f"{ctx.id} {spp} spp: loaded", k * len(names))
-            continue
-        # distinct seeds on every rung: rungs are independent samples
-        result[spp] = interleaved(ctx.scene, ctx.integrators, dict.fromkeys(names, spp), k,
-                                  stream("ladder", rung).take(k), ctx.run.step, ctx.id)
-        _save(path, key, spp, result[spp])
-    return result
+    # distinct seeds on every rung: rungs are independent samples
+    return {spp: kept(ctx, f"spp{spp}", f"rung {rung}", ctx.integrators,
+                      dict.fromkeys(names, spp), k, stream("ladder", rung).take(k), compile_,
+                      ctx.id)
+            for rung, spp in enumerate(ctx.plan.ladder)}

@@ -1,0 +1,299 @@
+"""The speed-and-images stage: accuracy against time at the display resolution.
+
+The small-image statistics (:mod:`.stages`) decide whether an estimator is
+right; this stage measures what it costs and shows what it looks like, at the
+resolution of the scene's :class:`~.profiles.Display`, in a sub-context of
+the scene's (``ctx.display``). Its stages, in order:
+
+    display            the scene at the display resolution, same estimators
+    time_costs         warm renders, estimators interleaved: a pilot at two spp;
+                       then ``repeats`` rounds at the spp each estimator needs
+                       for the smallest and the largest budget → per estimator
+                       t = a + b·spp with bootstrap intervals (costs.py)
+    render_budgets     budgets T = `path`'s model at ``path_spp`` (scaled by
+                       powers of two until every a ≤ 10 % of the smallest T);
+                       K renders per estimator and budget at
+                       spp = max(1, round((T − a)/b)), interleaved, each timed
+    display_reference  `path` until its standard error is at most the profile's
+                       fraction of the smallest RMSE at the largest budget
+                       (references.ensure: adaptive, cached by content)
+    measure_speed      relMSE with its interval per budget, wall times against
+                       the budget, efficiency against `path`, a ranking with
+                       ties, FLIP
+    save_display       images/<scene>/display/: the reference; per estimator
+                       its first render at the largest budget with its FLIP map
+
+Timings and renders are kept in ``<out>/renders/<scene>/speed.npz`` under a key
+(scene content, estimators, settings): a re-run into a finished directory
+renders nothing; the timings it reports are the first run's.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+
+import numpy as np
+
+from mcillum import files
+from mcillum.integrators import registry
+
+from . import costs, metrics, references, renders, seeds, stages
+from .results import Budget, BudgetRun, Ratio, ReferenceSummary, Speed
+from .sweeps import Unit, rotation
+
+REFERENCE = registry.REFERENCE
+PILOT_SPP = (2, 16)
+MAX_SCALE = 64             # budgets grow at most this much to outweigh the fixed cost
+ON_BUDGET = 0.10           # a median wall time within ±10 % of its budget
+CACHE_VERSION = 1
+
+
+# ----------------------------- The display scene --------------------------------
+
+def display(ctx) -> None:
+    """The scene at the display resolution with the estimators the scene
+    comparison chose; its cached timings and renders if a run left them."""
+    d = ctx.plan.display
+    sub = ctx.derive(list(ctx.integrators), label=f"{ctx.id} {d.res}²",
+                     plan=dataclasses.replace(ctx.plan, res=d.res))
+    stages.load(sub)
+    sub.integrators = {n: renders.make_integrator(n, sub.params) for n in sub.estimators}
+    ctx.display = sub
+    _load_cache(ctx)
+
+
+def _warm(sub, spp: dict[str, int], seed: int) -> None:
+    """One untimed render of each estimator at ``spp[name]``. The first render
+    in a process at a larger wavefront than before takes up to twice as long
+    (memory is allocated; measured: cornell_box 128², 25 spp after 16: 163 ms,
+    then 88 ms), so every timed render follows one at its largest size."""
+    for n, s in spp.items():
+        renders.render(sub.scene, sub.integrators[n], s, seed)
+
+
+def _timed(sub, plan: dict[str, list[int]], rounds: int, stream) -> dict:
+    """{name: {spp: [seconds]}}: after a warm-up at each estimator's largest
+    spp, ``rounds`` rounds, the estimators rotated every round, each
+    rendering at every spp of ``plan[name]``."""
+    _warm(sub, {n: max(spps) for n, spps in plan.items()}, stream.seed(0))
+    out = {n: {s: [] for s in spps} for n, spps in plan.items()}
+    names = list(plan)
+    for i in range(rounds):
+        for n in rotation(names, i):
+            for s in plan[n]:
+                out[n][s].append(renders.render(sub.scene, sub.integrators[n], s,
+                                                stream.seed(i)).seconds)
+    return out
+
+
+def time_costs(ctx) -> None:
+    """A cost model t = a + b·spp per estimator (see the module doc)."""
+    if ctx.timings is not None:                         # from the cache
+        ctx.costs = {n: costs.fit_cost(t) for n, t in ctx.timings.items()}
+        return
+    sub, d = ctx.display, ctx.plan.display
+    stream = seeds.stream("speed_timing")
+    pilot = {n: costs.fit_cost({s: [min(t)] * 2 for s, t in spps.items()})
+             for n, spps in _timed(sub, dict.fromkeys(sub.integrators, list(PILOT_SPP)),
+                                   2, stream).items()}
+    scale = _scale(pilot, d.path_spp)
+    low, high = (costs.seconds_at(pilot[REFERENCE], scale * s)
+                 for s in (min(d.path_spp), max(d.path_spp)))
+    plan = {}
+    for n, model in pilot.items():
+        if n == REFERENCE:
+            plan[n] = [scale * min(d.path_spp), scale * max(d.path_spp)]
+            continue
+        lo = costs.spp_for(model, low)
+        plan[n] = [lo, max(costs.spp_for(model, high), 2 * lo)]
+    ctx.timings = _timed(sub, plan, d.repeats, stream)
+    ctx.costs = {n: costs.fit_cost(t) for n, t in ctx.timings.items()}
+    ctx.budget_scale = scale
+
+
+def _scale(models: dict, path_spp) -> int:
+    """The power of two (≤ MAX_SCALE) by which `path`'s spp values grow so that
+    every estimator's fixed cost is at most 10 % of the smallest budget."""
+    worst = max(max(m.fixed_s, 0.0) for m in models.values())
+    scale = 1
+    while scale < MAX_SCALE and \
+            costs.seconds_at(models[REFERENCE], scale * min(path_spp)) * costs.MAX_OVERHEAD \
+            < worst:
+        scale *= 2
+    return scale
+
+
+# --------------------------------- Budgets ---------------------------------------
+
+def render_budgets(ctx) -> None:
+    """K timed renders per estimator at every budget (or the cached ones)."""
+    sub, d = ctx.display, ctx.plan.display
+    path, scale = ctx.costs[REFERENCE], ctx.budget_scale
+    ctx.budgets = [(costs.seconds_at(path, scale * s), scale * s) for s in d.path_spp]
+    _note_overhead(ctx)
+    if ctx.budget_units:                                # from the cache
+        return
+    spps = [{n: path_spp if n == REFERENCE else costs.spp_for(m, budget)
+             for n, m in ctx.costs.items()} for budget, path_spp in ctx.budgets]
+    _warm(sub, {n: max(s[n] for s in spps) for n in sub.integrators},
+          seeds.stream("speed_timing").seed(0))
+    for j, ((budget, _), spp) in enumerate(zip(ctx.budgets, spps)):
+        ctx.budget_units.append(_interleaved(sub, spp, d.renders,
+                                             seeds.stream("speed", j).take(d.renders),
+                                             f"{budget * 1e3:.0f} ms"))
+    _save_cache(ctx)
+
+
+def _interleaved(sub, spp: dict, k: int, seed_list: list[int], what: str) -> dict:
+    names = list(spp)
+    shots, times = {n: [] for n in names}, {n: [] for n in names}
+    for i in range(k):
+        for n in rotation(names, i):
+            out = renders.render(sub.scene, sub.integrators[n], spp[n], seed_list[i])
+            shots[n].append(out.image[..., :3])
+            times[n].append(out.seconds)
+            sub.run.step(f"{sub.label} {what} {n} {spp[n]} spp #{i + 1}/{k}")
+    return {n: Unit(n, spp[n], np.stack(shots[n]), times[n]) for n in names}
+
+
+def _note_overhead(ctx) -> None:
+    smallest = ctx.budgets[0][0]
+    for n, m in ctx.costs.items():
+        share = costs.overhead_share(m, smallest)
+        if share > costs.MAX_OVERHEAD:
+            ctx.notes.append(
+                f"{n}: its fixed cost {m.fixed_s * 1e3:.1f} ms is {100 * share:.0f} % of the "
+                f"smallest budget ({smallest * 1e3:.1f} ms), over the 10 % the stage aims "
+                "for: its times at that budget are partly launch overhead")
+
+
+# -------------------------------- Reference --------------------------------------
+
+def display_reference(ctx) -> None:
+    """`path` at the display resolution, precise to the profile's fraction of
+    the smallest RMSE at the largest budget."""
+    sub = ctx.display
+    stacks = [u.images for u in ctx.budget_units[-1].values()]
+    sub.reference = references.ensure(
+        sub, references.target_for(stacks, ctx.run.profile.reference_fraction))
+
+
+# --------------------------------- Numbers ---------------------------------------
+
+def measure_speed(ctx) -> None:
+    sub, d = ctx.display, ctx.plan.display
+    ref = sub.reference
+    r = ref.mean[..., :3]
+    ref_share = float(np.mean(ref.variance_of_mean[..., :3] / (r ** 2 + metrics.EPSILON)))
+    budgets = []
+    for (budget, path_spp), units in zip(ctx.budgets, ctx.budget_units):
+        runs = {n: _budget_run(ctx, n, u, budget, r) for n, u in units.items()}
+        budgets.append(Budget(budget, path_spp, runs, ref_share))
+    top = budgets[-1].estimators
+    base = top[REFERENCE]
+    ratios = {n: costs.ratio_interval(run.relmse_per_render, run.wall_seconds,
+                                      base.relmse_per_render, base.wall_seconds)
+              for n, run in top.items()}
+    ranking = costs.ranking({n: costs.efficiency_interval(run.relmse_per_render,
+                                                          run.wall_seconds)
+                             for n, run in top.items()})
+    flips = {n: metrics.flip(u.images[0], r) for n, u in ctx.budget_units[-1].items()}
+    ctx.flip_maps = {n: f[0] for n, f in flips.items() if f is not None}
+    ctx.speed = Speed(
+        d.res, d.renders, dict(ctx.costs), budgets,
+        {n: Ratio(*v) for n, v in ratios.items()}, ranking,
+        ReferenceSummary(REFERENCE, ref.spp, ref.passes, ref.spp_per_pass, ref.seconds,
+                         ref.cached_passes, ref.meta.get("rendered_passes", 0),
+                         ref.meta.get("target_variance", 0.0),
+                         float(ref.variance_of_mean.mean()), ref.capped, ref.key),
+        {n: (f[1] if f is not None else float("nan")) for n, f in flips.items()},
+        list(ctx.notes))
+
+
+def _budget_run(ctx, name: str, unit: Unit, budget: float, r: np.ndarray) -> BudgetRun:
+    per = [metrics.relmse(x, r) for x in unit.images]
+    mean, ci = costs.mean_interval(per)
+    median = float(np.median(unit.seconds))
+    on = abs(median - budget) <= ON_BUDGET * budget
+    note = None
+    if not on:
+        one = costs.seconds_at(ctx.costs[name], 1)
+        if unit.spp == 1 and one > budget:
+            note = (f"1 spp already takes {one * 1e3:.1f} ms (cost model), more than the "
+                    f"{budget * 1e3:.1f} ms budget")
+        else:
+            note = (f"median {median * 1e3:.1f} ms at {unit.spp} spp against a "
+                    f"{budget * 1e3:.1f} ms budget ({100 * (median / budget - 1):+.0f} %): "
+                    "the machine's speed drifted between the timing and these renders, "
+                    "or t = a + b·spp does not hold at this spp")
+        ctx.notes.append(f"{name} at {budget * 1e3:.1f} ms: {note}")
+    return BudgetRun(unit.spp, [float(s) for s in unit.seconds], mean, ci, per, on, note)
+
+
+# --------------------------------- Images ----------------------------------------
+
+def save_display(ctx) -> None:
+    """images/<scene>/display/: the reference; each estimator's first render at
+    the largest budget with its FLIP map as layer ``flip``."""
+    sub = ctx.display
+    out = os.path.join(ctx.images_dir, "display")
+    os.makedirs(out, exist_ok=True)
+    ref = sub.reference
+    files.write_exr(f"{out}/reference.exr", ref.mean[..., :3].astype(np.float32),
+                    {"spp": ref.spp, "passes": ref.passes})
+    budget = ctx.budgets[-1][0]
+    for n, unit in ctx.budget_units[-1].items():
+        layers = {"flip": ctx.flip_maps[n][..., None]} if n in ctx.flip_maps else None
+        files.write_exr(f"{out}/{n}.exr", unit.images[0].astype(np.float32),
+                        {"integrator": n, "spp": unit.spp,
+                         "seed": seeds.stream("speed", len(ctx.budgets) - 1).seed(0),
+                         "render_seconds": float(unit.seconds[0]),
+                         "budget_seconds": budget}, layers)
+
+
+# ---------------------------------- Cache ----------------------------------------
+
+def _cache_file(ctx) -> tuple[str, str]:
+    sub, d = ctx.display, ctx.plan.display
+    key = hashlib.sha256(json.dumps(
+        [sub.scene_key, list(sub.integrators), dataclasses.asdict(d), PILOT_SPP,
+         MAX_SCALE, CACHE_VERSION]).encode()).hexdigest()[:24]
+    return os.path.join(ctx.run.out_dir, "renders", ctx.id, "speed.npz"), key
+
+
+def _load_cache(ctx) -> None:
+    path, key = _cache_file(ctx)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if str(z["key"]) != key:
+                return
+            meta = json.loads(str(z["meta"]))
+            units = [{n: Unit(n, spp, z[f"images_{j}_{i}"], z[f"seconds_{j}_{i}"].tolist())
+                      for i, (n, spp) in enumerate(budget)}
+                     for j, budget in enumerate(meta["spp"])]
+    except Exception:  # absent, partial or from another version: time and render anew
+        return
+    ctx.timings = {n: {int(s): t for s, t in v.items()} for n, v in meta["timings"].items()}
+    ctx.budget_scale = int(meta["scale"])
+    ctx.budget_units = units
+    ctx.run.step(f"{ctx.id} speed stage: loaded",
+                 len(units) * ctx.plan.display.renders * len(ctx.display.integrators))
+
+
+def _save_cache(ctx) -> None:
+    path, key = _cache_file(ctx)
+    arrays = {"key": key, "meta": json.dumps({
+        "timings": {n: {str(s): t for s, t in v.items()} for n, v in ctx.timings.items()},
+        "scale": ctx.budget_scale,
+        "spp": [[[n, u.spp] for n, u in units.items()] for units in ctx.budget_units]})}
+    for j, units in enumerate(ctx.budget_units):
+        for i, u in enumerate(units.values()):
+            arrays[f"images_{j}_{i}"] = u.images
+            arrays[f"seconds_{j}_{i}"] = np.asarray(u.seconds)
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    with files.atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez_compressed(f, **arrays)
