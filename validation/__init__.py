@@ -8,11 +8,14 @@ Read it as the pipeline it runs; each module imports only modules above it:
                             (with its files: results.json, csv, summary, JUnit)
     images, renders,        one render, timed; K renders per estimator and spp
     sweeps
+    costs, timing           t = a + b·spp with intervals, efficiency, ranking;
+                            timed warm renders (and `mcillum bench`)
     statistics, references  batch-means tests; Mitsuba's `path` until its noise is small
-    tails, analysis         heavy tails; metrics per spp, convergence, equal time
+    tails, analysis         heavy tails; metrics per spp, convergence
     checks                  every check and verdict rule
-    context, stages         one scene run or failure case, and the stages over it
+    context, stages, speed  one scene run or failure case, the stages over it, and
+                            the speed-and-images stage at the display resolution
     charts, report          what people look at
     progress, pipeline      the one orchestrator (`mcillum validate`)
-    timing, cli             `mcillum bench`, and the `mcillum` command
+    cli                     the `mcillum` command
 """

@@ -59,8 +59,10 @@ def _parser() -> argparse.ArgumentParser:
     b = sub.add_parser(
         "bench", help="time integrators against each other on one scene",
         description="Render SCENE once per integrator (compile), then RUNS interleaved "
-                    "warm rounds; print median warm times and ratios to the first "
-                    "integrator, and optionally write them as JSON.")
+                    "warm rounds at SPP/4 and SPP; fit t = a + b*spp per integrator and "
+                    "print a (fixed cost) and b (seconds per spp) with 95 %% bootstrap "
+                    "intervals, and b as a ratio to the first integrator's; optionally "
+                    "write them as JSON.")
     _scene_arguments(b, "property given to every integrator, e.g. max_depth=8")
     b.add_argument("--integrators", default="path,uniform_hemisphere,cosine_hemisphere",
                    help="comma-separated plugin names; ratios are to the first "
@@ -160,8 +162,8 @@ def _render(args) -> int:
 
 
 def _bench(args) -> int:
-    if args.spp < 1 or args.runs < 1:
-        raise _Usage("--spp and --runs must be >= 1")
+    if args.spp < 1 or args.runs < 2:
+        raise _Usage("--spp must be >= 1 and --runs >= 2 (an interval needs repeats)")
     params, defines = _assignments(args.param), _assignments(args.define)
     names = [n.strip() for n in args.integrators.split(",") if n.strip()]
     if not names:
@@ -173,10 +175,7 @@ def _bench(args) -> int:
     scene = renders.load_scene(args.scene, **defines)
     rows = timing.bench(scene, integrators, args.spp, args.runs)
     for row in rows:
-        print(f"{row.integrator:>22}: median {row.median_seconds:.4f} s over "
-              f"{len(row.warm_seconds)} warm runs (first {row.first_seconds:.3f} s), "
-              f"{row.ratio_to_first:.2f}x {names[0]}, "
-              f"{row.samples_per_second / 1e6:.2f} Msamples/s")
+        print(timing.describe(row, names[0]))
     if args.json:
         timing.write_json(args.json, args.scene, scene, defines, params, args.spp, variant,
                           rows)

@@ -40,7 +40,7 @@ import numpy as np
 from mcillum import files
 from mcillum.integrators import registry
 
-from . import costs, metrics, references, renders, seeds, stages
+from . import costs, metrics, references, renders, seeds, stages, timing
 from .results import Budget, BudgetRun, Ratio, ReferenceSummary, Speed
 from .sweeps import Unit, rotation
 
@@ -65,30 +65,6 @@ def display(ctx) -> None:
     _load_cache(ctx)
 
 
-def _warm(sub, spp: dict[str, int], seed: int) -> None:
-    """One untimed render of each estimator at ``spp[name]``. The first render
-    in a process at a larger wavefront than before takes up to twice as long
-    (memory is allocated; measured: cornell_box 128², 25 spp after 16: 163 ms,
-    then 88 ms), so every timed render follows one at its largest size."""
-    for n, s in spp.items():
-        renders.render(sub.scene, sub.integrators[n], s, seed)
-
-
-def _timed(sub, plan: dict[str, list[int]], rounds: int, stream) -> dict:
-    """{name: {spp: [seconds]}}: after a warm-up at each estimator's largest
-    spp, ``rounds`` rounds, the estimators rotated every round, each
-    rendering at every spp of ``plan[name]``."""
-    _warm(sub, {n: max(spps) for n, spps in plan.items()}, stream.seed(0))
-    out = {n: {s: [] for s in spps} for n, spps in plan.items()}
-    names = list(plan)
-    for i in range(rounds):
-        for n in rotation(names, i):
-            for s in plan[n]:
-                out[n][s].append(renders.render(sub.scene, sub.integrators[n], s,
-                                                stream.seed(i)).seconds)
-    return out
-
-
 def time_costs(ctx) -> None:
     """A cost model t = a + b·spp per estimator (see the module doc)."""
     if ctx.timings is not None:                         # from the cache
@@ -97,8 +73,9 @@ def time_costs(ctx) -> None:
     sub, d = ctx.display, ctx.plan.display
     stream = seeds.stream("speed_timing")
     pilot = {n: costs.fit_cost({s: [min(t)] * 2 for s, t in spps.items()})
-             for n, spps in _timed(sub, dict.fromkeys(sub.integrators, list(PILOT_SPP)),
-                                   2, stream).items()}
+             for n, spps in timing.timed(sub.scene, sub.integrators,
+                                         dict.fromkeys(sub.integrators, list(PILOT_SPP)), 2,
+                                         stream).items()}
     scale = _scale(pilot, d.path_spp)
     low, high = (costs.seconds_at(pilot[REFERENCE], scale * s)
                  for s in (min(d.path_spp), max(d.path_spp)))
@@ -109,7 +86,7 @@ def time_costs(ctx) -> None:
             continue
         lo = costs.spp_for(model, low)
         plan[n] = [lo, max(costs.spp_for(model, high), 2 * lo)]
-    ctx.timings = _timed(sub, plan, d.repeats, stream)
+    ctx.timings = timing.timed(sub.scene, sub.integrators, plan, d.repeats, stream)
     ctx.costs = {n: costs.fit_cost(t) for n, t in ctx.timings.items()}
     ctx.budget_scale = scale
 
@@ -138,8 +115,9 @@ def render_budgets(ctx) -> None:
         return
     spps = [{n: path_spp if n == REFERENCE else costs.spp_for(m, budget)
              for n, m in ctx.costs.items()} for budget, path_spp in ctx.budgets]
-    _warm(sub, {n: max(s[n] for s in spps) for n in sub.integrators},
-          seeds.stream("speed_timing").seed(0))
+    # (untimed: the first render at a larger wavefront allocates memory, timing.py)
+    timing.warm(sub.scene, sub.integrators, {n: max(s[n] for s in spps) for n in spps[0]},
+                seeds.stream("speed_timing").seed(0))
     for j, ((budget, _), spp) in enumerate(zip(ctx.budgets, spps)):
         ctx.budget_units.append(_interleaved(sub, spp, d.renders,
                                              seeds.stream("speed", j).take(d.renders),

@@ -1,10 +1,13 @@
-"""`mcillum bench`: time integrators against each other on one scene.
+"""Timed warm renders, and `mcillum bench`: what each integrator costs on one
+scene, as the cost model t = a + b·spp (costs.py).
 
-Machines are shared and noisy (±30 % here), so integrators are compared as
-ratios of medians within one process, their warm runs interleaved by
-:func:`sweeps.interleaved` so that drift hits all of them alike. The first
-render of each integrator compiles its kernel (or loads it from Dr.Jit's
-cache) and is reported apart.
+Machines are shared and noisy (±30 % here), so integrators are compared in
+one process, their renders interleaved (the order rotated every round,
+:func:`sweeps.rotation`) so that drift hits all of them alike, and each
+timed only after an untimed render at its largest spp: the first render of
+a kernel compiles it (or loads it from Dr.Jit's cache), and the first at a
+larger wavefront than before allocates memory (measured: cornell_box 128²,
+25 spp after 16 spp took 163 ms, then 88 ms).
 """
 
 from __future__ import annotations
@@ -12,65 +15,85 @@ from __future__ import annotations
 import json
 import os
 import platform
-import statistics as pystats
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from mcillum import files
 
-from . import seeds, sweeps
+from . import costs, seeds
 from .renders import render
+from .results import CostModel, to_json
+from .sweeps import rotation
 
 
-@dataclass
-class Timing:
-    """Wall-clock seconds of one integrator: first (compile) and warm runs."""
-
-    name: str
-    first_seconds: float
-    warm_seconds: list[float] = field(default_factory=list)
-
-    @property
-    def median(self) -> float:
-        return pystats.median(self.warm_seconds)
+def warm(scene, integrators: dict, spp: dict[str, int], seed: int) -> dict[str, float]:
+    """One untimed-for-the-model render of each integrator at ``spp[name]``;
+    returns its seconds (the first of a process includes compilation)."""
+    return {n: render(scene, integrators[n], spp[n], seed).seconds for n in spp}
 
 
-def alternate(scene, integrators: dict, spp: int, runs: int = 5) -> dict[str, Timing]:
-    """Time each of ``integrators`` (name → instance) on ``scene`` at ``spp``:
-    one first render each, then ``runs`` interleaved warm rounds, each with a
-    fresh seed (stream "bench")."""
-    if runs < 1:
-        raise ValueError("need at least one warm run")
-    stream = seeds.stream("bench")
-    out = {name: Timing(name, render(scene, integ, spp, seed=stream.seed(0)).seconds)
-           for name, integ in integrators.items()}
-    warm = sweeps.interleaved(scene, integrators, dict.fromkeys(integrators, spp), runs,
-                              stream.take(runs + 1)[1:])
-    for name, unit in warm.items():
-        out[name].warm_seconds = list(unit.seconds)
+def timed(scene, integrators: dict, plan: dict[str, list[int]], rounds: int,
+          stream) -> dict[str, dict[int, list[float]]]:
+    """{name: {spp: [seconds]}}: after a warm-up at each integrator's largest
+    spp, ``rounds`` rounds, the integrators rotated every round, each
+    rendering at every spp of ``plan[name]`` (round i with seed i of
+    ``stream``)."""
+    warm(scene, integrators, {n: max(s) for n, s in plan.items()}, stream.seed(0))
+    out = {n: {s: [] for s in spps} for n, spps in plan.items()}
+    names = list(plan)
+    for i in range(rounds):
+        for n in rotation(names, i):
+            for s in plan[n]:
+                out[n][s].append(render(scene, integrators[n], s, stream.seed(i)).seconds)
     return out
 
+
+# ------------------------------- mcillum bench ----------------------------------
 
 @dataclass
 class BenchRow:
     integrator: str
-    first_seconds: float
-    warm_seconds: list[float]
-    median_seconds: float
-    ratio_to_first: float
-    samples_per_second: float
+    first_seconds: float            # the first render: compile or cache load, and 1 spp
+    cost_model: CostModel
+    median_seconds: float           # warm renders at --spp
+    ratio_to_first: float           # b ÷ the first integrator's b
+    samples_per_second: float       # pixels / b
 
 
 def bench(scene, integrators: dict, spp: int, runs: int) -> list[BenchRow]:
-    """:func:`alternate`, as rows with ratios to the first integrator."""
-    times = alternate(scene, integrators, spp, runs)
+    """Time each integrator at ``spp`` // 4 and ``spp`` (``runs`` interleaved
+    rounds), fit t = a + b·spp, and compare the b (seconds per spp) to the
+    first integrator's."""
+    if runs < 1:
+        raise ValueError("need at least one warm run")
+    stream = seeds.stream("bench")
+    first = warm(scene, integrators, dict.fromkeys(integrators, 1), stream.seed(0))
+    low = max(1, spp // 4)
+    plan = {n: sorted({low, max(spp, low + 1)}) for n in integrators}
+    times = timed(scene, integrators, plan, runs, stream)
+    models = {n: costs.fit_cost(t) for n, t in times.items()}
     names = list(integrators)
-    base = times[names[0]].median
     w, h = (int(x) for x in scene.sensors()[0].film().crop_size())
-    return [BenchRow(n, times[n].first_seconds, times[n].warm_seconds, times[n].median,
-                     times[n].median / base, w * h * spp / times[n].median) for n in names]
+    base = models[names[0]].per_spp_s
+    return [BenchRow(n, first[n], models[n], float(np.median(times[n][plan[n][-1]])),
+                     models[n].per_spp_s / base if base > 0 else float("nan"),
+                     w * h / models[n].per_spp_s if models[n].per_spp_s > 0 else float("inf"))
+            for n in names]
+
+
+def describe(row: BenchRow, first: str) -> str:
+    """One line of `mcillum bench`: a and b with their 95 % intervals."""
+    m = row.cost_model
+    return (f"{row.integrator:>22}: a = {m.fixed_s * 1e3:.2f} ms "
+            f"[{m.fixed_s_ci.low * 1e3:.2f}, {m.fixed_s_ci.high * 1e3:.2f}], "
+            f"b = {m.per_spp_s * 1e3:.3f} ms/spp "
+            f"[{m.per_spp_s_ci.low * 1e3:.3f}, {m.per_spp_s_ci.high * 1e3:.3f}]; "
+            f"median {row.median_seconds:.4f} s at {max(int(s) for s in m.timings)} spp "
+            f"(first render {row.first_seconds:.3f} s); b is {row.ratio_to_first:.2f}x "
+            f"{first}'s; {row.samples_per_second / 1e6:.2f} Msamples/s")
 
 
 def write_json(path: str, scene_path: str, scene, defines: dict, params: dict, spp: int,
@@ -81,5 +104,6 @@ def write_json(path: str, scene_path: str, scene, defines: dict, params: dict, s
               "spp": spp, "resolution": [w, h], "variant": variant,
               "mitsuba_version": mi.__version__, "drjit_version": dr.__version__,
               "machine": platform.platform(), "cpus": os.cpu_count(),
-              "results": [asdict(r) for r in rows]}
+              "model": "t = fixed_s + per_spp_s * spp (95 % bootstrap intervals)",
+              "results": [to_json(r) for r in rows]}
     files.write_text(path, json.dumps(report, indent=2) + "\n")
