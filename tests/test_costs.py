@@ -99,15 +99,18 @@ def test_ranking_ties_only_overlapping_intervals():
 
 
 def test_budgets_grow_until_the_fixed_cost_is_a_tenth():
-    """speed._scale: `path`'s spp values double until every estimator's fixed
-    cost is at most 10 % of the smallest budget, up to MAX_SCALE."""
+    """speed.budget_spp: `path`'s spp values grow by one factor until every
+    estimator's fixed cost is at most 10 % of the smallest budget, keeping
+    their ratios, up to MAX_SCALE."""
     path = costs.fit_cost({4: [A + B * 4] * 3, 16: [A + B * 16] * 3})
     slow_start = costs.fit_cost({4: [0.02 + B * 4] * 3, 16: [0.02 + B * 16] * 3})
-    scale = speed._scale({"path": path, "other": slow_start}, (4, 8, 16))
-    assert costs.seconds_at(path, scale * 4) >= 10 * 0.02 > costs.seconds_at(path, scale * 2)
+    spp = speed.budget_spp({"path": path, "other": slow_start}, (4, 8, 16))
+    assert spp[1] == 2 * spp[0] and spp[2] == 4 * spp[0]
+    assert costs.seconds_at(path, spp[0]) >= 10 * 0.02 > costs.seconds_at(path, spp[0] - 1)
+    cheap = costs.fit_cost({4: [5e-4 + B * 4] * 3, 16: [5e-4 + B * 16] * 3})
+    assert speed.budget_spp({"path": cheap}, (4, 8)) == [4, 8]  # already ≤ 10 %: as given
     hopeless = costs.fit_cost({4: [10.0 + 1e-9 * 4] * 3, 16: [10.0 + 1e-9 * 16] * 3})
-    assert speed._scale({"path": path, "other": hopeless}, (4,)) == speed.MAX_SCALE
-
+    assert speed.budget_spp({"path": path, "other": hopeless}, (4,)) == [4 * speed.MAX_SCALE]
 
 def test_two_runs_are_compared_on_ratios_and_reversed_pairs():
     from mcillum.validation.results import Placement, Ratio

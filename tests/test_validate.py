@@ -195,6 +195,22 @@ def test_reference_key_changes_with_everything_that_changes_the_image(llvm, tmp_
     assert k1 != references.cache_key(sky, {"envmap": str(env)}, {}, "llvm_ad_rgb")
 
 
+def test_capped_reference_is_not_chased_again_by_a_rerun(llvm, tmp_path):
+    """A reference that hit its time cap is used as it is by a re-run with the
+    same caps and target (before, every re-run rendered until the cap again:
+    30 s per quick scene); a stricter target or a higher cap extends it."""
+    import dataclasses
+    ctx = furnace(tmp_path)
+    ctx.run.profile = dataclasses.replace(ctx.run.profile, reference_max_seconds=0.05)
+    first = references.ensure(ctx, 1e-12)                    # out of reach
+    assert first.capped == "time cap 0.05 s"
+    again = references.ensure(ctx, 1e-12)
+    assert again.meta["rendered_passes"] == 0 and again.capped == first.capped
+    assert again.passes == first.passes
+    stricter = references.ensure(ctx, 1e-13)
+    assert stricter.meta["rendered_passes"] > 0 and stricter.passes > first.passes
+
+
 def test_corrupt_cache_entry_is_rendered_anew(llvm, tmp_path):
     ctx = furnace(tmp_path)
     a = references.ensure(ctx, 1.0)

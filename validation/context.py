@@ -60,7 +60,7 @@ class Context:
     speed: object = None            # speed.measure_speed: results.Speed
     timings: dict = None            # speed.time_costs: name → {spp: [seconds]}
     costs: dict = field(default_factory=dict)         # speed.time_costs: name → CostModel
-    budget_scale: int = 1           # speed.time_costs: path_spp × this (fixed cost ≤ 10 %)
+    budget_path_spp: list = None    # speed.time_costs: path's spp at each budget
     budgets: list = field(default_factory=list)       # speed.render_budgets: (T, path spp)
     budget_units: list = field(default_factory=list)  # speed.render_budgets: name → Unit each
     flip_maps: dict = field(default_factory=dict)     # speed.measure_speed: name → (H, W)

@@ -24,8 +24,9 @@ GROUPS = ("scenes", "failures")
 class Display:
     """The speed-and-images stage of a scene (speed.py): the resolution a
     person judges the images at, and the time budgets, each the time `path`
-    needs for one of ``path_spp`` (scaled up by powers of two until the
+    needs for one of ``path_spp`` (all scaled by one factor until the
     fixed cost of a render is at most 10 % of the smallest budget)."""
+
 
     res: int
     path_spp: tuple[int, ...] = (4, 8, 16)
@@ -68,6 +69,11 @@ class Profile:
     name: str
     runs: tuple[SceneRun, ...]
     reference_fraction: float = 0.1   # reference SE ≤ this × smallest compared RMSE
+    #: At the display resolution (speed.py), of `path`'s own RMSE at the largest
+    #: budget: 0.25 costs about 16× path's spp there (0.1 of the smallest RMSE
+    #: of all cost 100× or more: 30 s per quick scene, beyond the profile's 3
+    #: minutes) and adds 6 % to path's relMSE, recorded as ``reference_relmse``.
+    display_reference_fraction: float = 0.25
     reference_spp_per_pass: int = 64
     reference_max_spp: int = 1 << 16
     reference_max_seconds: float = 60.0

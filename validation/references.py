@@ -7,7 +7,8 @@ variance of the mean comes from the spread of the pass means (batch means).
 :func:`ensure` adds passes until the reference's standard error is at most a
 given fraction of the smallest error it will be compared against (see
 :func:`target_variance`), or a cap on spp or seconds is hit: the result then
-says so in ``capped``.
+says so in ``capped``, and so does the cache, so that a re-run chasing the
+same (or a looser) target uses it as it is instead of rendering again.
 
 Cache: ``<cache>/references/<key>.exr`` with the mean ("RGB"), the summed
 squared deviations of pass means ("m2.RGB") and the bookkeeping in its header.
@@ -158,7 +159,8 @@ def load(cache_dir: str, key: str) -> Reference | None:
         return Reference(mean.astype(np.float64), m2.astype(np.float64), meta["passes"],
                          meta["spp_per_pass"], meta["seconds"],
                          np.asarray(meta["image_means"], np.float64), key,
-                         cached_passes=meta["passes"])
+                         cached_passes=meta["passes"],
+                         meta={k: meta[k] for k in ("capped", "caps", "target_variance") if k in meta})
     except Exception:
         os.unlink(path)  # corrupt or partial: never use it, render it anew
         return None
@@ -206,7 +208,14 @@ def ensure(ctx, target: float) -> Reference:
         return r is None or r.passes < MIN_PASSES or \
             float(r.variance_of_mean.mean()) > target
 
-    while need_more(ref):
+    caps = [max_spp, max_seconds]
+    if ref is not None and ref.meta.get("capped") and ref.meta.get("caps") == caps and \
+            target >= ref.meta.get("target_variance", np.inf):
+        # an earlier run hit these caps chasing this target or a stricter one:
+        # a re-run does not chase it again (a time cap would render every run)
+        ref.capped = ref.meta["capped"]
+
+    while need_more(ref) and not (ref is not None and ref.capped):
         if ref is not None and ref.spp + spp_per_pass > max_spp:
             ref.capped = f"spp cap {max_spp}"
             break
@@ -228,7 +237,9 @@ def ensure(ctx, target: float) -> Reference:
             ref.passes, ref.seconds = n, ref.seconds + out.seconds
             ref.image_means = np.vstack([ref.image_means, x.mean(axis=(0, 1))])
         ctx.run.step(f"reference pass {ref.passes} ({ref.spp} spp)")
+    ref.meta = {"target_variance": target, "rendered_passes": rendered}
+    if ref.capped:
+        ref.meta.update(capped=ref.capped, caps=caps)
     if rendered:
         save(ref, cache_dir)
-    ref.meta = {"target_variance": target, "rendered_passes": rendered}
     return ref

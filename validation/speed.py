@@ -6,17 +6,22 @@ resolution of the scene's :class:`~.profiles.Display`, in a sub-context of
 the scene's (``ctx.display``). Its stages, in order:
 
     display            the scene at the display resolution, same estimators
-    time_costs         warm renders, estimators interleaved: a pilot at two spp;
-                       then ``repeats`` rounds at the spp each estimator needs
-                       for the smallest and the largest budget → per estimator
+    time_costs         warm renders, estimators interleaved: a pilot at 1 and 16
+                       spp; then ``repeats`` rounds at the spp each estimator
+                       needs for ¼ of and the whole smallest budget → per estimator
                        t = a + b·spp with bootstrap intervals (costs.py)
-    render_budgets     budgets T = `path`'s model at ``path_spp`` (scaled by
-                       powers of two until every a ≤ 10 % of the smallest T);
+    render_budgets     budgets T = `path`'s model at ``path_spp`` (scaled by one
+                       factor until every a ≤ 10 % of the smallest T);
                        K renders per estimator and budget at
                        spp = max(1, round((T − a)/b)), interleaved, each timed
     display_reference  `path` until its standard error is at most the profile's
-                       fraction of the smallest RMSE at the largest budget
-                       (references.ensure: adaptive, cached by content)
+                       ``display_reference_fraction`` (25 %) of `path`'s own RMSE
+                       at the largest budget (references.ensure: adaptive,
+                       cached by content): about 16× `path`'s spp there. Its
+                       share of every relMSE is recorded (``reference_relmse``:
+                       6 % of path's); an estimator whose relMSE is within 2×
+                       of it is flagged in the notes (its efficiency is a lower
+                       bound: in the furnace the cosine estimator is exact)
     measure_speed      relMSE with its interval per budget, wall times against
                        the budget, efficiency against `path`, a ranking with
                        ties, FLIP
@@ -45,7 +50,8 @@ from .results import Budget, BudgetRun, Ratio, ReferenceSummary, Speed
 from .sweeps import Unit, rotation
 
 REFERENCE = registry.REFERENCE
-PILOT_SPP = (2, 16)
+PILOT_SPP = (1, 16)
+PILOT_ROUNDS = 3
 MAX_SCALE = 64             # budgets grow at most this much to outweigh the fixed cost
 ON_BUDGET = 0.10           # a median wall time within ±10 % of its budget
 CACHE_VERSION = 1
@@ -72,35 +78,35 @@ def time_costs(ctx) -> None:
         return
     sub, d = ctx.display, ctx.plan.display
     stream = seeds.stream("speed_timing")
+    # pilot: the fastest of 3 renders at 1 and 16 spp (a ≈ t(1) − b)
     pilot = {n: costs.fit_cost({s: [min(t)] * 2 for s, t in spps.items()})
              for n, spps in timing.timed(sub.scene, sub.integrators,
-                                         dict.fromkeys(sub.integrators, list(PILOT_SPP)), 2,
-                                         stream).items()}
-    scale = _scale(pilot, d.path_spp)
-    low, high = (costs.seconds_at(pilot[REFERENCE], scale * s)
-                 for s in (min(d.path_spp), max(d.path_spp)))
+                                         dict.fromkeys(sub.integrators, list(PILOT_SPP)),
+                                         PILOT_ROUNDS, stream).items()}
+    path_spp = budget_spp(pilot, d.path_spp)
+    smallest = costs.seconds_at(pilot[REFERENCE], path_spp[0])
+    # time each estimator at the spp it needs for a quarter of and the whole
+    # smallest budget (the line extrapolates to the larger budgets: measured,
+    # their renders land within a few % of them; small spp pin a down)
     plan = {}
     for n, model in pilot.items():
-        if n == REFERENCE:
-            plan[n] = [scale * min(d.path_spp), scale * max(d.path_spp)]
-            continue
-        lo = costs.spp_for(model, low)
-        plan[n] = [lo, max(costs.spp_for(model, high), 2 * lo)]
+        lo = costs.spp_for(model, smallest / 4)
+        plan[n] = [lo, max(costs.spp_for(model, smallest), 2 * lo)]
     ctx.timings = timing.timed(sub.scene, sub.integrators, plan, d.repeats, stream)
     ctx.costs = {n: costs.fit_cost(t) for n, t in ctx.timings.items()}
-    ctx.budget_scale = scale
+    ctx.budget_path_spp = path_spp
 
 
-def _scale(models: dict, path_spp) -> int:
-    """The power of two (≤ MAX_SCALE) by which `path`'s spp values grow so that
-    every estimator's fixed cost is at most 10 % of the smallest budget."""
+def budget_spp(models: dict, path_spp) -> list[int]:
+    """`path`'s spp at each budget: the profile's ``path_spp`` scaled by one
+    factor (1 to MAX_SCALE) so that every estimator's fixed cost is at most
+    10 % of the smallest budget, its ratios kept."""
     worst = max(max(m.fixed_s, 0.0) for m in models.values())
-    scale = 1
-    while scale < MAX_SCALE and \
-            costs.seconds_at(models[REFERENCE], scale * min(path_spp)) * costs.MAX_OVERHEAD \
-            < worst:
-        scale *= 2
-    return scale
+    path = models[REFERENCE]
+    needed = (worst / costs.MAX_OVERHEAD - path.fixed_s) / max(path.per_spp_s, 1e-12)
+    scale = min(max(1.0, needed / min(path_spp)), MAX_SCALE)
+    first = int(np.ceil(scale * min(path_spp)))
+    return [int(round(first * s / min(path_spp))) for s in path_spp]
 
 
 # --------------------------------- Budgets ---------------------------------------
@@ -108,8 +114,8 @@ def _scale(models: dict, path_spp) -> int:
 def render_budgets(ctx) -> None:
     """K timed renders per estimator at every budget (or the cached ones)."""
     sub, d = ctx.display, ctx.plan.display
-    path, scale = ctx.costs[REFERENCE], ctx.budget_scale
-    ctx.budgets = [(costs.seconds_at(path, scale * s), scale * s) for s in d.path_spp]
+    path = ctx.costs[REFERENCE]
+    ctx.budgets = [(costs.seconds_at(path, s), s) for s in ctx.budget_path_spp]
     _note_overhead(ctx)
     if ctx.budget_units:                                # from the cache
         return
@@ -154,9 +160,9 @@ def display_reference(ctx) -> None:
     """`path` at the display resolution, precise to the profile's fraction of
     the smallest RMSE at the largest budget."""
     sub = ctx.display
-    stacks = [u.images for u in ctx.budget_units[-1].values()]
+    stacks = [ctx.budget_units[-1][REFERENCE].images]
     sub.reference = references.ensure(
-        sub, references.target_for(stacks, ctx.run.profile.reference_fraction))
+        sub, references.target_for(stacks, ctx.run.profile.display_reference_fraction))
 
 
 # --------------------------------- Numbers ---------------------------------------
@@ -171,6 +177,11 @@ def measure_speed(ctx) -> None:
         runs = {n: _budget_run(ctx, n, u, budget, r) for n, u in units.items()}
         budgets.append(Budget(budget, path_spp, runs, ref_share))
     top = budgets[-1].estimators
+    for n, run in top.items():
+        if run.relmse < 2 * ref_share:
+            ctx.notes.append(f"{n}: its relMSE {run.relmse:.3g} is within 2× of the "
+                             f"reference's own share {ref_share:.3g}: the reference limits "
+                             "it, and its efficiency is a lower bound")
     base = top[REFERENCE]
     ratios = {n: costs.ratio_interval(run.relmse_per_render, run.wall_seconds,
                                       base.relmse_per_render, base.wall_seconds)
@@ -238,7 +249,7 @@ def _cache_file(ctx) -> tuple[str, str]:
     sub, d = ctx.display, ctx.plan.display
     key = hashlib.sha256(json.dumps(
         [sub.scene_key, list(sub.integrators), dataclasses.asdict(d), PILOT_SPP,
-         MAX_SCALE, CACHE_VERSION]).encode()).hexdigest()[:24]
+         PILOT_ROUNDS, MAX_SCALE, CACHE_VERSION]).encode()).hexdigest()[:24]
     return os.path.join(ctx.run.out_dir, "renders", ctx.id, "speed.npz"), key
 
 
@@ -255,7 +266,7 @@ def _load_cache(ctx) -> None:
     except Exception:  # absent, partial or from another version: time and render anew
         return
     ctx.timings = {n: {int(s): t for s, t in v.items()} for n, v in meta["timings"].items()}
-    ctx.budget_scale = int(meta["scale"])
+    ctx.budget_path_spp = [int(x) for x in meta["path_spp"]]
     ctx.budget_units = units
     ctx.run.step(f"{ctx.id} speed stage: loaded",
                  len(units) * ctx.plan.display.renders * len(ctx.display.integrators))
@@ -265,7 +276,7 @@ def _save_cache(ctx) -> None:
     path, key = _cache_file(ctx)
     arrays = {"key": key, "meta": json.dumps({
         "timings": {n: {str(s): t for s, t in v.items()} for n, v in ctx.timings.items()},
-        "scale": ctx.budget_scale,
+        "path_spp": ctx.budget_path_spp,
         "spp": [[[n, u.spp] for n, u in units.items()] for units in ctx.budget_units]})}
     for j, units in enumerate(ctx.budget_units):
         for i, u in enumerate(units.values()):
