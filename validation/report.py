@@ -70,11 +70,6 @@ def worst_window(errors: list[np.ndarray]) -> tuple[int, int, int]:
     return int(y), int(x), size
 
 
-def _figure(uri: str, caption: str) -> str:
-    return (f'<figure><img src="{uri}" alt="{html.escape(caption)}">'
-            f"<figcaption>{caption}</figcaption></figure>")
-
-
 def _fmt(x, spec=".3g"):
     return "—" if x is None or (isinstance(x, float) and not np.isfinite(x)) else format(x, spec)
 
@@ -264,14 +259,12 @@ def _failure_case(case: CaseResult, run_dir: str, colours: dict) -> str:
     ref_file = os.path.join(case_dir, "reference.exr")
     ref = files.read_exr(ref_file)[0] if os.path.isfile(ref_file) else None
     ev = images.exposure_for(ref) if ref is not None else 0.0
-    figs = [] if ref is None else [_figure(_png_uri(_enlarge(images.tonemap(ref, ev), 96)),
-                                           "reference (path)")]
+    figs = [] if ref is None else [_img(images.tonemap(ref, ev), "reference (path)", 96)]
     rows = []
     for est in case.estimators:
         for label, f in est.images.items():
             x = files.read_exr(os.path.join(case_dir, f))[0]
-            figs.append(_figure(_png_uri(_enlarge(images.tonemap(x, ev), 96)),
-                                f"{est.name}<br>{label} seed"))
+            figs.append(_img(images.tonemap(x, ev), f"{est.name}<br>{label} seed", 96))
         rows.append(_failure_row(case, est, colours))
     if case.sweep is not None:
         sw = case.sweep

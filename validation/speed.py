@@ -45,9 +45,9 @@ import numpy as np
 from mcillum import files
 from mcillum.integrators import registry
 
-from . import costs, metrics, references, renders, seeds, stages, timing
-from .results import Budget, BudgetRun, Ratio, ReferenceSummary, Speed
-from .sweeps import Unit, rotation
+from . import costs, metrics, references, seeds, stages, sweeps, timing
+from .results import Budget, BudgetRun, Ratio, Speed
+from .sweeps import Unit
 
 REFERENCE = registry.REFERENCE
 PILOT_SPP = (1, 16)
@@ -66,7 +66,7 @@ def display(ctx) -> None:
     sub = ctx.derive(list(ctx.integrators), label=f"{ctx.id} {d.res}²",
                      plan=dataclasses.replace(ctx.plan, res=d.res))
     stages.load(sub)
-    sub.integrators = {n: renders.make_integrator(n, sub.params) for n in sub.estimators}
+    sub.integrators = dict(ctx.integrators)           # (integrators hold no scene)
     ctx.display = sub
     _load_cache(ctx)
 
@@ -125,22 +125,10 @@ def render_budgets(ctx) -> None:
     timing.warm(sub.scene, sub.integrators, {n: max(s[n] for s in spps) for n in spps[0]},
                 seeds.stream("speed_timing").seed(0))
     for j, ((budget, _), spp) in enumerate(zip(ctx.budgets, spps)):
-        ctx.budget_units.append(_interleaved(sub, spp, d.renders,
-                                             seeds.stream("speed", j).take(d.renders),
-                                             f"{budget * 1e3:.0f} ms"))
+        ctx.budget_units.append(sweeps.interleaved(
+            sub.scene, sub.integrators, spp, d.renders, seeds.stream("speed", j).take(d.renders),
+            sub.run.step, f"{sub.label} {budget * 1e3:.0f} ms"))
     _save_cache(ctx)
-
-
-def _interleaved(sub, spp: dict, k: int, seed_list: list[int], what: str) -> dict:
-    names = list(spp)
-    shots, times = {n: [] for n in names}, {n: [] for n in names}
-    for i in range(k):
-        for n in rotation(names, i):
-            out = renders.render(sub.scene, sub.integrators[n], spp[n], seed_list[i])
-            shots[n].append(out.image[..., :3])
-            times[n].append(out.seconds)
-            sub.run.step(f"{sub.label} {what} {n} {spp[n]} spp #{i + 1}/{k}")
-    return {n: Unit(n, spp[n], np.stack(shots[n]), times[n]) for n in names}
 
 
 def _note_overhead(ctx) -> None:
@@ -194,10 +182,7 @@ def measure_speed(ctx) -> None:
     ctx.speed = Speed(
         d.res, d.renders, dict(ctx.costs), budgets,
         {n: Ratio(*v) for n, v in ratios.items()}, ranking,
-        ReferenceSummary(REFERENCE, ref.spp, ref.passes, ref.spp_per_pass, ref.seconds,
-                         ref.cached_passes, ref.meta.get("rendered_passes", 0),
-                         ref.meta.get("target_variance", 0.0),
-                         float(ref.variance_of_mean.mean()), ref.capped, ref.key),
+        stages.reference_summary(ref),
         {n: (f[1] if f is not None else float("nan")) for n, f in flips.items()},
         list(ctx.notes))
 

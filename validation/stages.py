@@ -174,15 +174,19 @@ def save_images(ctx) -> None:
 
 
 def scene_result(ctx) -> SceneResult:
-    ref, info = ctx.reference, ctx.info
+    info = ctx.info
     return SceneResult(
         ctx.id, os.path.relpath(info.path, os.getcwd()), describe(ctx), ctx.res, ctx.max_depth,
-        list(ctx.plan.ladder), ctx.plan.renders,
-        ReferenceSummary(REFERENCE, ref.spp, ref.passes, ref.spp_per_pass, ref.seconds,
-                         ref.cached_passes, ref.meta.get("rendered_passes", 0),
-                         ref.meta.get("target_variance", 0.0),
-                         float(ref.variance_of_mean.mean()), ref.capped, ref.key),
+        list(ctx.plan.ladder), ctx.plan.renders, reference_summary(ctx.reference),
         list(ctx.measured.values()), ctx.speed)
+
+
+def reference_summary(ref) -> ReferenceSummary:
+    """What the results record of a reference (references.Reference)."""
+    return ReferenceSummary(REFERENCE, ref.spp, ref.passes, ref.spp_per_pass, ref.seconds,
+                            ref.cached_passes, ref.meta.get("rendered_passes", 0),
+                            ref.meta.get("target_variance", 0.0),
+                            float(ref.variance_of_mean.mean()), ref.capped, ref.key)
 
 
 def describe(ctx) -> str:
