@@ -36,6 +36,15 @@ def test_fit_recovers_a_and_b():
         A / (A + 16 * B))
 
 
+def test_a_negative_fitted_fixed_cost_predicts_no_negative_time():
+    """A fit on a loaded machine once gave a = −2.2 s, and a budget of −2 s."""
+    model = costs.fit_cost({1: [0.5, 0.6], 16: [0.4, 0.45], 64: [0.3, 0.35]})
+    assert model.per_spp_s < 0
+    assert costs.seconds_at(model, 16) == pytest.approx(max(model.fixed_s, 0))
+    steep = costs.fit_cost({4: [0.01], 1024: [3.0]})
+    assert steep.fixed_s < 0 < costs.seconds_at(steep, 4) == pytest.approx(4 * steep.per_spp_s)
+
+
 def test_fit_needs_two_spp_values():
     with pytest.raises(ValueError, match="two spp values"):
         costs.fit_cost({16: [0.1, 0.1, 0.1]})

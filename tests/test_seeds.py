@@ -43,3 +43,23 @@ def test_a_stream_refuses_what_it_does_not_hold():
         seeds.stream("ladder", 50)
     with pytest.raises(KeyError, match="no seed stream 'nope'"):
         seeds.stream("nope")
+
+
+def test_seed_sets_are_disjoint_repeats():
+    """Seed set S shifts every seed by S·0x9E3779B9 mod 2³²: within a set the
+    streams still never overlap; across sets the seeds differ; set 0 is the
+    table of the module doc."""
+    base = {s.name: s.take(min(s.size, 2000)) for s in seeds.all_streams()}
+    try:
+        seeds.use_set(1)
+        shifted = {s.name: s.take(min(s.size, 2000)) for s in seeds.all_streams()}
+        assert seeds.stream("ladder", 2).seed(3) == (20_003 + seeds.SET_STEP) % 2 ** 32
+        every = [x for xs in shifted.values() for x in xs]
+        assert len(every) == len(set(every))
+        assert all(0 <= x < 2 ** 32 for x in every)
+        assert not set(every) & {x for xs in base.values() for x in xs}
+        with pytest.raises(ValueError, match="0…999"):
+            seeds.use_set(1000)
+    finally:
+        seeds.use_set(0)
+    assert seeds.stream("ladder", 2).seed(3) == 20_003

@@ -73,7 +73,11 @@ def fit_cost(timings: dict[int, list[float]], seed: int = 0) -> CostModel:
 
 
 def seconds_at(model: CostModel, spp: float) -> float:
-    return model.fixed_s + model.per_spp_s * spp
+    """The time the model predicts for one render at ``spp``. A fitted fixed
+    cost below 0 (noise on a loaded machine: it once put a budget at −2 s)
+    counts as 0, and a per-spp cost below 0 as 0: no render takes less than
+    nothing, nor less at more spp."""
+    return max(model.fixed_s, 0.0) + max(model.per_spp_s, 0.0) * spp
 
 
 def spp_for(model: CostModel, budget: float) -> int:

@@ -120,6 +120,8 @@ def cache_key(scene_path: str, defines: dict, params: dict, variant: str) -> str
     desc = {"defines": {k: v for k, v in defines.items() if k != "envmap"},
             "params": params, "variant": variant, "mitsuba": mi.__version__,
             "drjit": dr.__version__, "integrator": "path", "format": FORMAT_VERSION}
+    if seeds.seed_set():                  # another independent repeat (seeds.py)
+        desc["seed_set"] = seeds.seed_set()
     h.update(json.dumps(desc, sort_keys=True, default=str).encode())
     return h.hexdigest()[:32]
 

@@ -24,6 +24,14 @@ bench`, which used 0, 1, …, has its own stream now):
 
 Within one scene run or failure case every stream is used once; different
 scenes reuse them (they are different experiments).
+
+Seed sets (:func:`use_set`, ``mcillum validate --seed-set S``): set 0 is the
+table above; set S adds S·0x9E3779B9 to every seed, modulo 2³². Adding a
+constant modulo 2³² maps distinct seeds to distinct seeds, so the streams of
+one set still never overlap, and Mitsuba's sampler hashes its seed, so each
+set is an independent repeat of the whole validation (its references
+included: references.py puts the set into their cache key). Sets are for
+calibrating the tests: how often a correct estimator fails over repeats.
 """
 
 from __future__ import annotations
@@ -38,20 +46,21 @@ class Stream:
     name: str
     first: int
     size: int
+    shift: int = 0                  # of the seed set (module doc), added modulo 2³²
 
     def seed(self, i: int = 0) -> int:
         """The ``i``-th seed of the stream."""
         if not 0 <= i < self.size:
             raise ValueError(f"seed stream '{self.name}' holds {self.size} seeds; "
                              f"index {i} is outside it")
-        return self.first + i
+        return (self.first + i + self.shift) % SEEDS
 
     def take(self, k: int) -> list[int]:
         """The first ``k`` seeds."""
         if not 0 <= k <= self.size:
             raise ValueError(f"seed stream '{self.name}' holds {self.size} seeds; "
                              f"{k} were asked for")
-        return list(range(self.first, self.first + k))
+        return [self.seed(i) for i in range(k)]
 
     @property
     def last(self) -> int:
@@ -82,6 +91,29 @@ STREAMS = {
 }
 
 
+#: Mitsuba's seeds are 32-bit.
+SEEDS = 2 ** 32
+
+#: What seed set S adds to every seed (× S, modulo 2³²): the golden-ratio
+#: constant, so that the sets' streams land far from each other.
+SET_STEP = 0x9E3779B9
+
+_set = 0
+
+
+def use_set(s: int) -> None:
+    """Make every stream hand out the seeds of seed set ``s`` (module doc)."""
+    global _set
+    if not 0 <= s < 1000:
+        raise ValueError(f"the seed set must be in 0…999, got {s}")
+    _set = int(s)
+
+
+def seed_set() -> int:
+    """The seed set in use."""
+    return _set
+
+
 def stream(name: str, block: int = 0) -> Stream:
     """Block ``block`` of the stream called ``name``."""
     if name not in STREAMS:
@@ -91,7 +123,8 @@ def stream(name: str, block: int = 0) -> Stream:
         raise ValueError(f"seed stream '{name}' has {layout.blocks} block(s); "
                          f"block {block} is outside it")
     label = name if layout.blocks == 1 else f"{name}[{block}]"
-    return Stream(label, layout.first + block * layout.size, layout.size)
+    return Stream(label, layout.first + block * layout.size, layout.size,
+                  _set * SET_STEP % SEEDS)
 
 
 def all_streams() -> list[Stream]:
