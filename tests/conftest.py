@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 import mcillum  # noqa: F401  (LLVM set-up before drjit; registers the plugins)
+import drjit as dr
 import mitsuba as mi
 
 from mcillum.integrators import registry
@@ -111,3 +112,52 @@ def wrong_pdf_integrator(base: str = "cosine_hemisphere", factor: float = 1.05,
                          props: "mi.Properties | None" = None):
     """An instance of :func:`wrong_pdf_class`."""
     return wrong_pdf_class(base, factor)(props or mi.Properties())
+
+
+def clamped_class(reference: np.ndarray, base: str = "cosine_hemisphere",
+                  factor: float = 10.0):
+    """A deliberately biased estimator: ``base`` with every sample's radiance
+    clamped per channel at ``factor`` × the ``reference`` (H, W, 3) at its
+    pixel (the firefly clamp renderers offer, and users forget is a bias).
+    The pixel of a camera ray is where the sensor sees a point on it
+    (``Sensor.sample_direction`` gives film coordinates)."""
+    cls = plugin_class(base)
+    h, w = reference.shape[:2]
+    limit = (factor * np.asarray(reference[..., :3], np.float32)).reshape(-1)
+
+    class Clamped(cls):
+        plugin_name = f"{base}_clamped_{factor:g}x"
+
+        def sample(self, scene, sampler, ray, medium=None, active=True):
+            L, valid, aovs = super().sample(scene, sampler, ray, medium, active)
+            it = dr.zeros(mi.Interaction3f)
+            it.p = ray.o + ray.d
+            ds, _ = scene.sensors()[0].sample_direction(it, mi.Point2f(0.5), active)
+            x = mi.UInt32(dr.clip(dr.floor(ds.uv.x), 0, w - 1))
+            y = mi.UInt32(dr.clip(dr.floor(ds.uv.y), 0, h - 1))
+            i = 3 * (y * w + x)
+            cap = mi.Color3f(*(dr.gather(mi.Float, mi.Float(limit), i + c) for c in range(3)))
+            return dr.minimum(L, cap), valid, aovs
+
+    return Clamped
+
+
+def path_at_depth_class(depth: int = 2):
+    """A deliberately biased reference: Mitsuba's ``path`` at ``max_depth``
+    ``depth`` whatever the validation asks for (it reads and ignores the
+    max_depth it is given)."""
+
+    class PathAtDepth(mi.SamplingIntegrator):
+        plugin_name = f"path_max_depth_{depth}"
+        display_name, colour, reachable, listing_order = plugin_name, None, frozenset(), 400
+        max_direction_pdf = None
+
+        def __init__(self, props):
+            super().__init__(props)
+            props.get("max_depth", -1)         # (the validation's: ignored on purpose)
+            self.inner = mi.load_dict({"type": "path", "max_depth": depth})
+
+        def sample(self, scene, sampler, ray, medium=None, active=True):
+            return self.inner.sample(scene, sampler, ray, medium, active)
+
+    return PathAtDepth

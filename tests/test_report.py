@@ -67,11 +67,16 @@ def synthetic_results(scenes=("alpha", "beta"), ladder=(4, 16, 64)) -> Results:
                              1e-3, 2e-3, 0.01, 0.0, 1e-4 * spp, [1e-4 * spp] * 8, 1e6,
                              (i + 1) * spp / (0.5 * 1e-4 * spp), 0.0) for spp in ladder]
             passed = name != "uniform_hemisphere"
+            # one inconclusive check: cosine in the second scene
+            outcome = ("fail" if not passed else
+                       "inconclusive" if (s, name) == (scenes[-1], "cosine_hemisphere")
+                       else "pass")
             ests.append(EstimatorResult(
                 name, {"max_depth": 2}, 0.1, runs,
-                Unbiasedness(ladder[-1], passed, 0.99, 0.01, 0.01, 1e-5, [0.5], "m"),
+                Unbiasedness(ladder[-1], passed, 0.99, 0.01, 0.01, 1e-5, [0.5], "m",
+                             outcome=outcome, reason=f"why {outcome}"),
                 Convergence(-1.0, -1.1, -0.9, False, True, True)))
-            checks.append(Check(f"{s}/{name}/unbiased", passed, "m"))
+            checks.append(Check(f"{s}/{name}/unbiased", passed, f"m {outcome}", outcome))
         scene_results.append(SceneResult(
             s, f"scenes/{s}.xml", f"{s}: a synthetic scene", 8, 2, list(ladder), 8,
             ReferenceSummary("path", 4096, 64, 64, 1.0, 0, 64, 1e-6, 1e-6, None, "k"), ests,
@@ -121,6 +126,31 @@ def test_results_round_trip_through_json():
     it back gives the same records."""
     res = synthetic_results()
     assert results.from_json(Results, json.loads(json.dumps(results.to_json(res)))) == res
+
+
+def test_inconclusive_checks_are_skipped_in_junit_and_fail_only_when_strict(tmp_path):
+    """Three outcomes: the run passes while no check fails; JUnit shows an
+    inconclusive check as skipped with its reason, or with --strict as a
+    failure; a file from before minor version 3 (no outcome) reads passed."""
+    import xml.etree.ElementTree as ET
+
+    res = synthetic_results()
+    assert res.counts() == {"pass": 3, "fail": 2, "inconclusive": 1}
+    assert not res.passed and [c.outcome for c in res.inconclusive] == ["inconclusive"]
+    res.checks = [c for c in res.checks if c.outcome != "fail"]
+    assert res.passed                                   # inconclusive is not a failure
+    for strict, failures, skipped in ((False, "0", "1"), (True, "1", "0")):
+        path = tmp_path / f"junit-{strict}.xml"
+        results.write_junit(str(path), res, strict=strict)
+        suite = ET.parse(path).getroot()
+        assert (suite.get("failures"), suite.get("skipped")) == (failures, skipped)
+        case = [c for c in suite if "cosine" in c.get("name")][-1]
+        tag = "failure" if strict else "skipped"
+        assert case.find(tag).get("message").endswith("m inconclusive")
+    old = {"id": "a/b/unbiased", "passed": False, "message": "m"}
+    assert results.from_json(Check, old).outcome == "fail"
+    with pytest.raises(ValueError, match="outcome"):
+        Check("a/b/c", True, "m", "maybe")
 
 
 def test_non_finite_numbers_are_written_as_null_and_read_back_as_nan(tmp_path):
@@ -205,7 +235,11 @@ def test_report_is_self_contained(tmp_path):
     assert "$" not in re.sub(r"<(svg|style).*?</\1>", "", text, flags=re.S)
     for b64 in pngs:
         assert matplotlib.image.imread(io.BytesIO(base64.b64decode(b64)), format="png").size
-    assert "4 of 6 checks passed" in text                    # 2 scenes x 3, uniform fails
+    # 2 scenes × 3: uniform fails in both, cosine is inconclusive in one
+    assert "3 of 6 checks pass, 1 inconclusive, 2 fail" in text
+    unsure = text.split("Inconclusive at this budget", 1)[1]
+    assert "cosine_hemisphere/unbiased</code>: m inconclusive" in unsure
+    assert 'class=warn title="why inconclusive">inconclusive' in text
     assert "alpha/uniform_hemisphere/unbiased" in text       # failures are listed
     assert (tmp_path / "report" / "summary.md").is_file()
 

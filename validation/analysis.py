@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import stats
 
-from . import metrics, statistics, tails
+from . import checks, metrics, statistics, tails
 from .results import Convergence, RunStats, Unbiasedness
 
 
@@ -42,19 +42,43 @@ def run_stats(unit, reference) -> RunStats:
         tails.firefly_fraction(np.nan_to_num(x), r))
 
 
-def unbiasedness(stacks: dict, reference, runs: list[RunStats], alpha: float) -> Unbiasedness:
+def unbiasedness(stacks: dict, reference, runs: list[RunStats], alpha: float,
+                 reference_events: np.ndarray | None = None, fresh=None) -> Unbiasedness:
     """The batch-means test of all rungs ``stacks`` ({spp: (K, H, W, C)}) pooled,
-    each weighted by its samples, against the reference; not tested (failed)
-    where a render holds NaN/Inf."""
+    each weighted by its samples, against the reference, read by
+    :func:`checks.bias_outcome` (``reference_events``: fireflies per pixel in
+    path's renders); not tested (failed) where a render holds NaN/Inf. A
+    rejection that counts is tested again on ``fresh()`` renders (K more at
+    the top spp; None: not replicated): if it does not come back, the outcome
+    is inconclusive (an α-chance alarm, or a bias too small for K)."""
     top = max(stacks)
     if not all(r.nonfinite_fraction == 0 for r in runs):
         return Unbiasedness(top, False, 0.0, 0.0, alpha, 0.0, [],
-                            "not tested: non-finite pixels")
+                            "not tested: non-finite pixels", outcome="fail",
+                            reason="non-finite pixels")
     pooled = statistics.Moments.pooled({spp: x[..., :3] for spp, x in stacks.items()})
-    c = statistics.compare(pooled, reference.moments(), alpha)
+    ref = reference.moments()
+    c = statistics.compare(pooled, ref, alpha)
+    events, n, carried = tails.tail_events(stacks.values(), reference.mean, stacks.keys())
+    samples = int(sum(spp * x.shape[0] for spp, x in stacks.items()))
+    d = checks.bias_outcome(c, events, n, samples, carried, reference_events)
+    if d.outcome == "fail" and fresh is not None:
+        y = fresh()[..., :3]
+        pixels, image, again = statistics.replicate(c, y, ref, alpha)
+        fresh_events, k, fresh_carried = tails.tail_events([y], reference.mean)
+        excused = checks.bias_outcome(again, fresh_events, k, top * k, fresh_carried,
+                                      reference_events).outcome == "inconclusive"
+        if not (pixels.any() or image) or excused:
+            d.outcome = "inconclusive"
+            d.reason += (f"; not replicated in {k} fresh renders at {top} spp"
+                         + (" (they caught fireflies: a tail)" if excused else ""))
+        else:
+            d.reason += (f"; replicated in {k} fresh renders at {top} spp"
+                         + (f" ({int(pixels.sum())} px)" if pixels.any() else " (image mean)"))
     return Unbiasedness(top, c.passed, c.pass_fraction, c.min_p, alpha, c.alpha_pixel,
-                        [float(p) for p in c.pooled_p], c.summary(),
-                        int(sum(spp * x.shape[0] for spp, x in stacks.items())))
+                        [float(p) for p in c.pooled_p], c.summary(), samples,
+                        d.outcome, d.reason, d.rejected_up, d.rejected_down,
+                        int(events.sum()), d.samples_needed)
 
 
 def loglog_fit(x, y, alpha: float = 0.05):
@@ -66,17 +90,24 @@ def loglog_fit(x, y, alpha: float = 0.05):
     return fit.slope, fit.intercept, (fit.slope - half, fit.slope + half)
 
 
-def convergence(runs: list[RunStats], alpha: float = 0.05) -> Convergence:
+def convergence(runs: list[RunStats], alpha: float = 0.05,
+                heavy: bool = False) -> Convergence:
     """Slope of log (relMSE − the reference's share) against log spp, with its
-    (1 − α) interval; it converges when the interval lies below 0, or when
-    the estimator has zero variance at every spp (exact). With fewer than 3
-    usable rungs the interval is unbounded and nothing is claimed."""
+    (1 − α) interval, read by :func:`checks.convergence_outcome` (``heavy``:
+    the estimator's renders hold fireflies). An estimator with zero variance
+    at every spp is exact. With fewer than 3 usable rungs the interval is
+    unbounded and nothing is claimed (inconclusive)."""
     if all(r.variance_per_render <= 1e-12 for r in runs):
-        return Convergence(float("nan"), float("nan"), float("nan"), True, True, True)
-    ok = [(r.spp, r.relmse - r.reference_relmse) for r in runs
-          if r.relmse - r.reference_relmse > 0]
-    if len(ok) < 3:
-        return Convergence(float("nan"), float("-inf"), float("inf"), False, True, False)
-    slope, _, (lo, hi) = loglog_fit(*zip(*ok), alpha)
-    return Convergence(float(slope), float(lo), float(hi), False, bool(lo <= -1.0 <= hi),
-                       bool(hi < 0))
+        c = Convergence(float("nan"), float("nan"), float("nan"), True, True, True)
+    else:
+        ok = [(r.spp, r.relmse - r.reference_relmse) for r in runs
+              if r.relmse - r.reference_relmse > 0]
+        if len(ok) < 3:
+            c = Convergence(float("nan"), float("-inf"), float("inf"), False, True, False)
+        else:
+            slope, _, (lo, hi) = loglog_fit(*zip(*ok), alpha)
+            c = Convergence(float(slope), float(lo), float(hi), False,
+                            bool(lo <= checks.EXPECTED_SLOPE <= hi), bool(hi < 0))
+    c.outcome, c.message = checks.convergence_outcome(c, heavy)
+    c.passed = c.outcome == "pass"
+    return c

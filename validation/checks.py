@@ -3,37 +3,47 @@
 A check is a function ``(context, units, reference) -> list[Check]``: it reads
 what the stages measured (on the context), the renders (``units``: spp →
 estimator → :class:`~mcillum.validation.sweeps.Unit`; None after a sweep, whose
-points each had their own) and the reference (likewise), and says pass or fail
-with a message. Check ids are
-``<scene or case>/<estimator>/<what>``. The pipeline runs the tuples below:
+points each had their own) and the reference (likewise), and gives one of
+three outcomes with a message: **pass**, **fail**, or **inconclusive** (the
+evidence cannot decide at this budget; the run stays green unless
+``--strict``). Check ids are ``<scene or case>/<estimator>/<what>``. The
+pipeline runs the tuples below:
 
 * :data:`SCENE` — per scene × estimator: ``finite`` (no NaN/Inf), ``unbiased``
-  (the batch-means test of all rungs pooled, :mod:`statistics`),
-  ``converges`` (relMSE slope interval below 0, or exact);
+  (the batch-means test of all rungs pooled, :mod:`statistics`, read by
+  :func:`bias_outcome`), ``converges`` (:func:`convergence_outcome`);
 * :data:`CASE` — per failure case × estimator: ``refuses`` (an estimator
   refuses exactly the scenes whose content it cannot reach, by its registry
-  facts) and ``stable`` (its verdict is not "biased" or "non-finite/negative");
+  facts) and ``stable`` (its verdict: fail for "biased" and
+  "non-finite/negative", inconclusive for :data:`INCONCLUSIVE`);
 * :data:`SWEEP` — per swept case × estimator: ``finite``.
 
 To add a check: write the function here and add it to the tuple of the runs
-it applies to.
+it applies to. The rules of evidence (below) are the one place that decides
+what a rejection of the unbiasedness test means.
 
 Failure-case verdicts (:func:`case_verdict`): ``fine``; ``heavy-tailed``
-(unbiased, but the error is carried by rare renders or pixels:
-:func:`tails.is_heavy`); ``K too small to tell``; ``refused``; ``biased
-(opt-in)``; and the two that fail ``stable``: ``biased`` and
-``non-finite/negative``. A rejection of the batch-means test counts as bias
-only if it replicates in K fresh renders (an unseen tail replicates with
-probability about α, a bias with the test's power); a replicated rejection
-on a map with a sun is excused ("K too small to tell") when the estimator
-agrees with the reference on the map without the sun and either is expected
-to hit the sun fewer than :data:`SUN_HITS` times per pixel in all its samples
-or has no bound on that (its facts give no largest pdf: BSDF sampling, and
-the next-event estimators, whose excuse is doubtful: they sample the sun
-directly).
+(passes, but the error is carried by rare renders or pixels:
+:func:`tails.is_heavy`); ``refused``; ``biased (opt-in)``;
+``inconclusive: heavy tail`` (every rejection is one a tail can explain, or a
+sun too small for any render to hit: fewer than :data:`SUN_HITS` expected
+hits per pixel by the estimator's largest pdf); ``inconclusive: not
+replicated`` (a rejection that counts did not come back in K fresh renders:
+an α-chance alarm, or a bias too small for K); and the two that fail:
+``biased`` (a rejection that counts and replicated, or a bias on the map
+without its sun, tested by the same rules) and ``non-finite/negative``.
+Replication can decide only where the test's assumptions hold: fresh renders
+miss an unseen tail in the same pixels, so an inconclusive reading is not
+replicated. An estimator with no largest pdf (BSDF sampling) gets no sun
+excuse: a rejection that counts stands.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import stats
 
 from mcillum.integrators import registry
 
@@ -44,15 +54,178 @@ from .results import Check
 #: a missed sun from a bias (see envmaps/sun.py).
 SUN_HITS = 3.0
 
+#: Failure-case verdicts that leave the ``stable`` check inconclusive: a
+#: rejection that a heavy tail explains, and one that did not replicate.
+HEAVY = "inconclusive: heavy tail"
+NOT_REPLICATED = "inconclusive: not replicated"
+INCONCLUSIVE = (HEAVY, NOT_REPLICATED)
+
 #: Verdicts that fail the ``stable`` check.
 FAILING = ("biased", "non-finite/negative")
 
 
-def check(ctx, name: str, what: str, passed: bool, message: str) -> Check:
-    return Check(f"{ctx.id}/{name}/{what}", bool(passed), message)
+def check(ctx, name: str, what: str, outcome, message: str) -> Check:
+    """A check with ``outcome`` "pass", "fail" or "inconclusive" (or a bool:
+    pass or fail)."""
+    if isinstance(outcome, (bool, np.bool_)):
+        outcome = "pass" if outcome else "fail"
+    return Check(f"{ctx.id}/{name}/{what}", outcome != "fail", message, outcome)
 
 
 # ---------------------------- Scene comparisons -------------------------------
+
+# --------------------------- The rules of evidence -----------------------------
+#
+# A statistical test says fail only where its assumptions hold. The batch-means
+# test (statistics.py) assumes that K renders show each pixel's distribution;
+# an estimator that finds a small bright source only by chance breaks that:
+# most renders miss it, so a pixel's mean is low *and* its variance small, and
+# the test rejects a correct estimator. Such a tail cannot make a mean look too
+# *high* (one bright render among K raises the mean and the variance alike:
+# t ≈ √(hits)), so the rules below read the direction of every rejection. The
+# estimator is **heavy-tailed here** when any of its renders holds a firefly
+# (tails.py: a pixel brighter than 10× the reference there).
+#
+# * A rejection **upward** (estimator brighter) counts as bias — at a pixel,
+#   unless path's own renders caught a firefly there (the reference, path's
+#   mean, may lack an unseen tail there).
+# * A pixel's rejection **downward** counts as bias only if the estimator is
+#   not heavy-tailed here.
+# * The image mean's rejection **downward** counts if the estimator is not
+#   heavy-tailed, or if its tail cannot carry the deficit
+#   (:func:`tail_can_carry`): the fireflies seen carried s of the image mean
+#   in k events; for the estimator to be unbiased, its tail must carry
+#   s + d (d: the deficit beyond the test's critical value), i.e. the renders
+#   saw only k of about k·(s + d)/s events. If a Poisson count that low has
+#   probability below the pooled test's level, the tail cannot explain it.
+# * A rejection that does not count is **inconclusive**: the test saw a
+#   difference that a tail could explain, and ``samples_needed`` says about
+#   how many samples per pixel would see the tail TAIL_EVENTS times there.
+
+#: Tail events per pixel that a budget must expect before its per-pixel test
+#: can tell a missed tail from a bias (for ``samples_needed``).
+TAIL_EVENTS = 10.0
+
+
+@dataclass
+class Decision:
+    """The outcome of one unbiasedness test under the rules above."""
+
+    outcome: str                    # pass | fail | inconclusive
+    reason: str                     # one line: which rejections counted, and why
+    rejected_up: int = 0            # pixels whose smallest-p channel rejects upward
+    rejected_down: int = 0
+    samples_needed: float | None = None   # samples per pixel (inconclusive only)
+    tail_events: int = 0            # fireflies in the estimator's renders
+
+
+def tail_can_carry(c, events: int, carried: np.ndarray) -> np.ndarray:
+    """Per channel: could a tail that carried ``carried`` of the image mean in
+    ``events`` fireflies be under-sampled enough to explain the image mean's
+    deficit in :class:`statistics.Comparison` ``c`` (the rules above)?"""
+    if events == 0:
+        return np.zeros_like(np.asarray(c.pooled_t), bool)
+    crit = stats.norm.isf(c.alpha_pooled / 2)
+    deficit = np.maximum(0.0, -np.asarray(c.pooled_diff) - crit * np.asarray(c.pooled_se))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        expected = np.where(carried > 0, events * (carried + deficit) / carried, np.inf)
+    return stats.poisson.cdf(events, expected) >= c.alpha_pooled
+
+
+def bias_outcome(c, events: np.ndarray, renders: int, samples: int,
+                 carried: np.ndarray, reference_events: np.ndarray | None = None) -> Decision:
+    """The outcome of :class:`statistics.Comparison` ``c`` given the
+    estimator's fireflies per pixel ``events`` over its ``renders`` renders
+    of ``samples`` samples per pixel in all, what they ``carried`` of the
+    image mean (tails.tail_events), and path's fireflies per pixel
+    (``reference_events``, None: not known) (the rules above)."""
+    rejected = c.pixel_p < c.alpha_pixel
+    up, down = rejected & (c.pixel_t > 0), rejected & (c.pixel_t < 0)
+    ref_tail = np.zeros_like(up) if reference_events is None else reference_events > 0
+    up_counted = int((up & ~ref_tail).sum())
+    n_up, n_down = int(up.sum()), int(down.sum())
+    pooled = np.asarray(c.pooled_p) < c.alpha_pooled
+    pooled_up = bool((pooled & (np.asarray(c.pooled_t) > 0)).any())
+    low = pooled & (np.asarray(c.pooled_t) < 0)
+    total = int(events.sum())
+    heavy = total > 0
+    carry = tail_can_carry(c, total, np.asarray(carried, np.float64))
+    pooled_down, pooled_counted = bool(low.any()), bool((low & ~carry).any())
+
+    def decide(outcome, reason, needed=None):
+        return Decision(outcome, reason, n_up, n_down, needed, total)
+
+    if not (pooled.any() or rejected.any()):
+        return decide("pass", "no rejection")
+    counted = []
+    if pooled_up or up_counted:
+        counted.append("brighter than the reference"
+                       + (" (image mean)" if pooled_up else f" at {up_counted} px"))
+    if pooled_counted:
+        counted.append("image mean darker than the reference"
+                       + (f", more than its tail ({total} fireflies in {renders} renders) "
+                          "can explain" if heavy else ""))
+    if n_down and not heavy:
+        counted.append(f"darker at {n_down} px, with no firefly in {renders} renders")
+    if counted:
+        return decide("fail", "; ".join(counted))
+    # Every rejection is one a tail can explain: how many samples would see it?
+    where = down if n_down else np.ones_like(down)
+    seen = int(events[where].sum())
+    needed = samples * TAIL_EVENTS * int(where.sum()) / max(seen, 1)
+    why = []
+    if pooled_down or n_down:
+        why.append("darker" + (" image mean" if pooled_down else "")
+                   + (" and" if pooled_down and n_down else "")
+                   + (f" at {n_down} px" if n_down else "")
+                   + f", but heavy-tailed ({total} fireflies in {renders} renders"
+                   + (f", {seen} at those pixels" if n_down else "") + ")")
+    if n_up:
+        why.append(f"brighter at {n_up} px, where path's own renders caught fireflies "
+                   "(the reference may lack its tail there)")
+    return decide("inconclusive", "; ".join(why)
+                  + f"; about {needed:.2g} samples per pixel would see the tail "
+                  f"{TAIL_EVENTS:.0f}× there" + ("" if seen else " (none seen: at least)"),
+                  needed)
+
+
+#: The slope Monte Carlo's relMSE follows against spp.
+EXPECTED_SLOPE = -1.0
+
+#: A slope interval wider than this decides nothing.
+SLOPE_WIDTH = 1.0
+
+#: How far above the expected slope an interval must lie to fail: a slope of
+#: −0.99 ± 0.005 is Monte Carlo (the reference's own noise, subtracted from
+#: each rung's relMSE, bends the last rungs by about that much).
+SLOPE_TOLERANCE = 0.15
+
+
+def convergence_outcome(c, heavy: bool) -> tuple[str, str]:
+    """(outcome, message) of a :class:`results.Convergence`: fail when the
+    slope's 95 % interval lies above the expected slope (by more than
+    SLOPE_TOLERANCE) and is at most SLOPE_WIDTH wide (too slow for Monte
+    Carlo: a bias, or an error that does not fall), unless the estimator is
+    heavy-tailed (an unseen tail makes low-spp errors look small:
+    pre-asymptotic); pass when the interval lies below 0 otherwise;
+    inconclusive when it is too wide to say either."""
+    if c.exact:
+        return "pass", "exact (zero variance at every spp)"
+    text = f"relMSE slope {c.slope:+.2f} [{c.low:+.2f}, {c.high:+.2f}]"
+    if not np.isfinite(c.low) or not np.isfinite(c.high):
+        return "inconclusive", "fewer than 3 rungs with an error above the reference's"
+    width = c.high - c.low
+    if c.low > EXPECTED_SLOPE + SLOPE_TOLERANCE:
+        if width > SLOPE_WIDTH:
+            return "inconclusive", f"{text}: too wide (> {SLOPE_WIDTH}) to decide"
+        if heavy:
+            return "inconclusive", (f"{text}: slower than {EXPECTED_SLOPE:+.0f}, but "
+                                    "heavy-tailed (an unseen tail flattens the slope)")
+        return "fail", f"{text}: slower than {EXPECTED_SLOPE:+.0f}"
+    if c.high < 0:
+        return "pass", text
+    return "inconclusive", f"{text}: too wide (> {SLOPE_WIDTH}) to decide"
+
 
 def finite(ctx, units, reference) -> list[Check]:
     """No NaN or Inf in any render of any rung."""
@@ -65,21 +238,21 @@ def finite(ctx, units, reference) -> list[Check]:
 
 
 def unbiased(ctx, units, reference) -> list[Check]:
-    """The pooled batch-means test (measured by the ``measure`` stage)."""
-    return [check(ctx, name, "unbiased", est.unbiasedness.passed, est.unbiasedness.summary)
-            for name, est in ctx.measured.items()]
+    """The pooled batch-means test (measured by the ``measure`` stage), read
+    by :func:`bias_outcome`."""
+    out = []
+    for name, est in ctx.measured.items():
+        u = est.unbiasedness
+        out.append(check(ctx, name, "unbiased", u.outcome,
+                         u.summary if u.outcome == "pass" else f"{u.reason} — {u.summary}"))
+    return out
 
 
 def converges(ctx, units, reference) -> list[Check]:
-    """The error falls with spp: the slope's 95 % interval lies below 0, or
-    the estimator has zero variance at every spp (exact)."""
-    out = []
-    for name, est in ctx.measured.items():
-        c = est.convergence
-        out.append(check(ctx, name, "converges", c.passed,
-                         "exact (zero variance at every spp)" if c.exact else
-                         f"relMSE slope {c.slope:+.2f} [{c.low:+.2f}, {c.high:+.2f}]"))
-    return out
+    """The error falls with spp as Monte Carlo's should
+    (:func:`convergence_outcome`)."""
+    return [check(ctx, name, "converges", est.convergence.outcome, est.convergence.message)
+            for name, est in ctx.measured.items()]
 
 
 SCENE = (finite, unbiased, converges)
@@ -87,8 +260,9 @@ SCENE = (finite, unbiased, converges)
 
 # ------------------------------ Failure cases ---------------------------------
 
-def case_verdict(row) -> str:
-    """The verdict of one estimator's row in a failure case (see module doc)."""
+def case_verdict(row, pixels: int) -> str:
+    """The verdict of one estimator's row in a failure case of ``pixels``
+    pixels (see the module doc)."""
     if row.refused and row.numbers is None:
         return "refused"
     n = row.numbers
@@ -96,16 +270,22 @@ def case_verdict(row) -> str:
         return "biased (opt-in)"
     if n.nonfinite_values or n.negative_values:
         return "non-finite/negative"
-    t = n.test
-    if t.passed:
+    t, sun_ = n.test, n.sun
+    if t.outcome == "pass":
         heavy = tails.is_heavy(n.relmse.max, n.relmse.median, n.firefly_fraction)
         return "heavy-tailed" if heavy else "fine"
-    if t.replicated is False:
-        return "K too small to tell"
-    if n.sun is not None and n.sun.sunless_passed and (
-            n.sun.expected_sun_hits_per_pixel is None
-            or n.sun.expected_sun_hits_per_pixel < SUN_HITS):
-        return "K too small to tell"
+    if sun_ is not None and not sun_.sunless_passed:
+        return "biased"                  # biased without the sun, by the same rules
+    if t.outcome == "inconclusive":
+        return HEAVY
+    if not t.replicated:
+        return NOT_REPLICATED
+    hits = None if sun_ is None else sun_.expected_sun_hits_per_pixel
+    if hits is not None and hits < SUN_HITS and (
+            t.tail_events > 0 or hits * pixels < SUN_HITS):
+        # a sun too small to be hit in a pixel, by an estimator whose renders
+        # show a tail (or too small to be hit anywhere in the image)
+        return HEAVY
     return "biased"
 
 
@@ -129,7 +309,9 @@ def refuses(ctx, units, reference) -> list[Check]:
 def stable(ctx, units, reference) -> list[Check]:
     """Every estimator that rendered has a verdict other than biased or
     non-finite/negative."""
-    return [check(ctx, name, "stable", row.verdict not in FAILING,
+    return [check(ctx, name, "stable",
+                  "fail" if row.verdict in FAILING else
+                  "inconclusive" if row.verdict in INCONCLUSIVE else "pass",
                   describe(row.verdict, row.numbers))
             for name, row in ctx.rows.items() if row.verdict != "refused"]
 
@@ -145,21 +327,22 @@ def describe(v: str, n) -> str:
     rel, t = n.relmse, n.test
     text = (f"{v}: relMSE median {rel.median:.3g}, p99 {rel.p99:.3g}, max {rel.max:.3g}; "
             f"fireflies {100 * n.firefly_fraction:.3f} %")
-    if v == "K too small to tell" and n.sun is not None:
-        s, hits = n.sun, n.sun.expected_sun_hits_per_pixel
-        text += (f"; the per-pixel test rejects ({t.rejected_pixels} px) with the sun, "
-                 f"passes without it; the sun ({s.sun['solid_angle']:.2g} sr, "
-                 f"{100 * s.sun_share_of_image:.0f} % of path's image) is expected "
-                 + (f"{hits:.2g} direct hits per pixel in all {n.samples_per_pixel} samples"
-                    if hits is not None else "to be found only through the BSDF lobe"))
-    elif v == "K too small to tell":
-        text += (f"; the test rejected {t.rejected_pixels} px (pooled p = "
-                 f"{min(t.pooled_p):.3g}) and no rejection replicated in {n.seeds} fresh "
-                 "renders")
-    elif n.sun is not None:
-        text += f"; {t.test}; without the sun: {n.sun.sunless_test}"
+    if v == HEAVY:
+        text += f"; {t.reason}"
+        if n.sun is not None:
+            s, hits = n.sun, n.sun.expected_sun_hits_per_pixel
+            text += (f"; without the sun it is {s.sunless_outcome or 'not biased'}; the sun "
+                     f"({s.sun['solid_angle']:.2g} sr, {100 * s.sun_share_of_image:.0f} % of "
+                     "path's image) is expected "
+                     + (f"{hits:.2g} direct hits per pixel in all {n.samples_per_pixel} samples"
+                        if hits is not None else "to be found only through the BSDF lobe"))
+    elif v == NOT_REPLICATED:
+        text += (f"; {t.reason}; no rejection replicated in {n.seeds} fresh renders "
+                 f"({t.rejected_pixels} px rejected, pooled p = {min(t.pooled_p):.3g})")
+    elif v == "biased" and n.sun is not None and not n.sun.sunless_passed:
+        text += f"; biased without the sun too: {n.sun.sunless_reason}; {n.sun.sunless_test}"
     elif t is not None:
-        text += f"; {t.test}"
+        text += f"; {t.reason + ' — ' if t.reason else ''}{t.test}"
     return text
 
 

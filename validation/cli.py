@@ -88,8 +88,10 @@ def _parser() -> argparse.ArgumentParser:
         description="Compare every estimator with an adaptive `path` reference on the "
                     "profile's scenes (unbiasedness, convergence, equal time) and drive "
                     "each into the cases where it fails; write results.json, results.csv, "
-                    "summary.md, images and the report to --out. Exit 0 if every check "
-                    "passes, 1 if one fails, 2 on usage errors.")
+                    "summary.md, images and the report to --out. Every check passes, fails "
+                    "or is inconclusive (the evidence cannot decide at this budget). Exit 0 "
+                    "if no check fails (with --strict: if every check passes), 1 otherwise, "
+                    "2 on usage errors.")
     v.add_argument("--profile", choices=sorted(profiles.PROFILES), default="quick")
     v.add_argument("--groups", nargs="+", choices=profiles.GROUPS,
                    default=list(profiles.GROUPS),
@@ -104,6 +106,15 @@ def _parser() -> argparse.ArgumentParser:
     v.add_argument("--cache", metavar="DIR", help="reference cache (default $MCILLUM_CACHE "
                                                   "or ~/.cache/mcillum)")
     v.add_argument("--variant", default=None, help="Mitsuba variant")
+    v.add_argument("--seed-set", type=int, default=0, metavar="S",
+                   help="an independent repeat of the whole run, references included "
+                        "(0…999, default 0): for measuring how often the tests reject "
+                        "correct estimators")
+    v.add_argument("--strict", action="store_true",
+                   help="exit 1 when a check is inconclusive, not only when one fails "
+                        "(JUnit then reports inconclusive checks as failures, not skipped)")
+    v.add_argument("--no-speed", action="store_true",
+                   help="leave out the speed-and-images stage (no verdict depends on it)")
 
     rp = sub.add_parser(
         "report", help="(re)write the HTML report of an existing validation run",
@@ -204,6 +215,8 @@ def _validate(args) -> int:
     from . import pipeline
 
     profiles.PROFILES[args.profile].check_scenes(args.scenes or [])
+    if not 0 <= args.seed_set < 1000:
+        raise _Usage(f"--seed-set must be in 0…999, got {args.seed_set}")
     files.make_dir(args.out, "--out")
     if args.junit:
         files.check_output(args.junit, "--junit")
@@ -213,12 +226,14 @@ def _validate(args) -> int:
     for name in args.estimators or []:
         renders.make_integrator(name, {})
     out = pipeline.validate(args.profile, args.scenes, args.estimators, args.out, cache,
-                            args.variant, groups=tuple(args.groups))
+                            args.variant, groups=tuple(args.groups),
+                            seed_set=args.seed_set, speed_stage=not args.no_speed)
     if args.junit:
-        results.write_junit(args.junit, out)
+        results.write_junit(args.junit, out, strict=args.strict)
     print(results.summary(out))
     print(f"report: {os.path.join(args.out, 'report', 'index.html')}")
-    return EXIT_OK if out.passed else EXIT_FAILED
+    ok = out.passed and not (args.strict and out.inconclusive)
+    return EXIT_OK if ok else EXIT_FAILED
 
 
 def _report(args) -> int:

@@ -31,7 +31,7 @@ from mcillum import files
 from mcillum.errors import Interrupted
 from mcillum.integrators import registry
 
-from . import profiles, renders, report, results, speed, stages, statistics
+from . import profiles, renders, report, results, seeds, speed, stages, statistics
 from .context import Context, Run
 from .progress import Progress
 
@@ -52,12 +52,13 @@ def run_stages(stage_list, ctx: Context) -> Context:
     return ctx
 
 
-def compare_scene(run: Run, plan: profiles.SceneRun,
-                  estimators) -> tuple[results.SceneResult, list[results.Check]]:
-    """One scene of the profile: its result and its checks."""
+def compare_scene(run: Run, plan: profiles.SceneRun, estimators,
+                  speed_stage: bool = True) -> tuple[results.SceneResult, list[results.Check]]:
+    """One scene of the profile: its result and its checks (and, unless
+    ``speed_stage`` is False, its speed-and-images stage)."""
     ctx = run_stages(SCENE, Context(run, plan, plan.scene, list(estimators),
                                     dict(plan.defines), label=plan.scene))
-    if plan.display is not None and registry.REFERENCE in ctx.integrators:
+    if speed_stage and plan.display is not None and registry.REFERENCE in ctx.integrators:
         run_stages(SPEED, ctx)
     return stages.scene_result(ctx), ctx.checks
 
@@ -81,15 +82,19 @@ def failure_case(run: Run, plan: profiles.FailureCase,
 def validate(profile_name: str = "quick", scene_names=None, estimators=None,
              out_dir: str = "out/validate", cache_dir: str | None = None,
              variant: str | None = None, progress: bool | None = None,
-             groups=profiles.GROUPS) -> results.Results:
+             groups=profiles.GROUPS, seed_set: int = 0,
+             speed_stage: bool = True) -> results.Results:
     """Run a profile: its scene comparisons and/or its failures group
     (``groups``), filtered by scene name; write the results and the report.
+    ``seed_set`` picks an independent repeat (seeds.py); ``speed_stage``
+    False leaves out the speed-and-images stage (no verdict depends on it).
 
     Ctrl-C raises :class:`mcillum.errors.Interrupted` saying what was left and what
     to do (finished renders are kept and reused by the next run).
     """
     profile = profiles.PROFILES[profile_name]
     variant = renders.set_variant(variant)
+    seeds.use_set(seed_set)
     estimators = list(estimators or profile.estimator_names())
     cases_estimators = list(dict.fromkeys([*estimators, registry.REFERENCE]))
     plans = [r for r in profile.runs if "scenes" in groups
@@ -104,7 +109,7 @@ def validate(profile_name: str = "quick", scene_names=None, estimators=None,
     before = _stamp(json_path)
     total = sum(r.renders * len(estimators) * len(r.ladder) for r in plans) + \
         sum(r.display.renders * len(estimators) * len(r.display.path_spp)
-            for r in plans if r.display) + \
+            for r in plans if r.display and speed_stage) + \
         sum(c.seeds * len(cases_estimators) * max(1, len(c.sweep[1]) if c.sweep else 1)
             for c in cases)
     bar = Progress(total, progress)
@@ -114,7 +119,7 @@ def validate(profile_name: str = "quick", scene_names=None, estimators=None,
         scene_results, case_results, checks = [], [], []
         try:
             for plan in plans:
-                result, found = compare_scene(run, plan, estimators)
+                result, found = compare_scene(run, plan, estimators, speed_stage)
                 scene_results.append(result)
                 checks += found
             for plan in cases:
@@ -127,7 +132,7 @@ def validate(profile_name: str = "quick", scene_names=None, estimators=None,
             time.strftime("%Y-%m-%dT%H:%M:%S%z"), profile.name, variant, mi.__version__,
             dr.__version__, _machine(), statistics.ALPHA, profile.reference_fraction,
             time.perf_counter() - start, scene_results, checks, case_results,
-            estimator_facts([*estimators, *cases_estimators]))
+            estimator_facts([*estimators, *cases_estimators]), seed_set=seed_set)
         results.write_json(json_path, out)
     except KeyboardInterrupt:
         raise Interrupted(_left_behind(out_dir, json_path, before)) from None

@@ -28,7 +28,7 @@ from mcillum import files
 from mcillum.errors import UserError
 from mcillum.integrators.scene_checks import KIND_NAMES
 
-from . import charts, images, metrics, results, tails
+from . import charts, checks, images, metrics, results, tails
 from .results import CaseResult, Results, SceneResult
 
 ERROR_CMAP = "magma"
@@ -199,9 +199,10 @@ def _statistics_section(scene: SceneResult, run_dir: str, colours: dict) -> str:
             f"<tr><td>{_swatch(est.name, colours)}</td>"
             f"<td>{_fmt(top.relmse)} ({_fmt(top.relmse / best_rel if best_rel else None, '.2f')}×)</td>"
             f"<td>{top.bias:+.2e} ± {top.bias_se:.1e}</td>"
-            f"<td class={'ok' if u.passed else 'bad'}>{'pass' if u.passed else 'FAIL'} "
+            f"<td>{_outcome(u.outcome or ('pass' if u.passed else 'fail'), u.reason)} "
             f"({100 * u.pass_fraction:.1f} %)</td>"
-            f"<td>{slope}</td></tr>")
+            f"<td>{_outcome(c.outcome or ('pass' if c.passed else 'fail'), c.message)} "
+            f"{slope}</td></tr>")
     ref_info = scene.reference
     capped = f" — capped ({ref_info.capped})" if ref_info.capped else ""
     spp = ", ".join(str(s) for s in scene.ladder)
@@ -215,9 +216,26 @@ def _statistics_section(scene: SceneResult, run_dir: str, colours: dict) -> str:
 <div class=row>{charts.error_vs_spp(scene, colours)}</div>"""
 
 
+OUTCOME_CLASS = {"pass": "ok", "inconclusive": "warn", "fail": "bad"}
+
+
+def _outcome(outcome: str, why: str = "") -> str:
+    """A check's outcome as a coloured word, its reason on hover."""
+    title = f' title="{html.escape(why, quote=True)}"' if why else ""
+    word = "FAIL" if outcome == "fail" else outcome
+    return f"<span class={OUTCOME_CLASS.get(outcome, '')}{title}>{word}</span>"
+
+
 def _failures(res: Results, run_dir: str, colours: dict) -> str:
     items = "".join(f"<li><code>{html.escape(c.id)}</code>: {html.escape(c.message)}</li>"
                     for c in res.failed) or "<li>No check failed in this run.</li>"
+    unsure = "".join(f"<li><code>{html.escape(c.id)}</code>: {html.escape(c.message)}</li>"
+                     for c in res.inconclusive)
+    unsure = (f"<h3>Inconclusive at this budget</h3><p>The test saw a difference that a heavy "
+              f"tail explains (an estimator darker where its renders caught fireflies, or a "
+              f"sun too small to be hit), or a rejection that did not replicate: neither "
+              f"biased nor shown unbiased. Each line says about how many samples per pixel "
+              f"would decide.</p><ul>{unsure}</ul>") if unsure else ""
     capped = [f"<li><code>{html.escape(s.name)}</code>: reference capped "
               f"({html.escape(s.reference.capped)})</li>"
               for s in res.scenes if s.reference.capped]
@@ -238,17 +256,23 @@ def _failures(res: Results, run_dir: str, colours: dict) -> str:
     return f"""
 <section id="failures">
 <h2>Where methods fail</h2>
-<p>Every failed check of this run, every reference that hit its cap, every heavy-tailed
-estimator (worst render over {tails.TAIL_RATIO:g}× the median error, or over
-{100 * tails.TAIL_FIREFLIES:g} % fireflies), and the spread of per-render error over seeds
-(a long upper tail means rare, large contributions: fireflies).</p>
-<ul>{items}{''.join(capped)}{''.join(heavy)}</ul>
+<h3>Failed: biased or broken</h3>
+<p>Every failed check of this run, with its evidence.</p>
+<ul>{items}</ul>
+{unsure}
+<h3>Heavy tails and capped references</h3>
+<p>Every reference that hit its cap, every heavy-tailed estimator (worst render over
+{tails.TAIL_RATIO:g}× the median error, or over {100 * tails.TAIL_FIREFLIES:g} % fireflies),
+and the spread of per-render error over seeds (a long upper tail means rare, large
+contributions: fireflies).</p>
+<ul>{''.join(capped) + ''.join(heavy) or '<li>None in this run.</li>'}</ul>
 <div class=row>{spreads}</div>
 {cases}
 </section>"""
 
 
-VERDICT_CLASS = {"fine": "ok", "heavy-tailed": "warn", "K too small to tell": "warn",
+VERDICT_CLASS = {"fine": "ok", "heavy-tailed": "warn", checks.HEAVY: "warn",
+                 checks.NOT_REPLICATED: "warn", "K too small to tell": "warn",
                  "refused": "ok", "biased (opt-in)": "warn", "biased": "bad",
                  "non-finite/negative": "bad"}
 
@@ -316,8 +340,12 @@ def _failure_row(case: CaseResult, est, colours: dict) -> str:
         evidence.append(
             f"without the sun ({n.sun.sun['solid_angle']:.2g} sr, "
             f"{100 * n.sun.sun_share_of_image:.0f} % of the image): "
-            + ("passes" if n.sun.sunless_passed else "FAILS")
+            + ("not biased" if n.sun.sunless_passed else "BIASED")
             + (f"; expected sun hits/pixel {hits:.2g}" if hits is not None else ""))
+    if t is not None and t.reason and t.outcome != "pass":
+        evidence.append(t.reason)
+    if n.sun is not None and n.sun.sunless_reason and not n.sun.sunless_passed:
+        evidence.append(f"without the sun: {n.sun.sunless_reason}")
     if t is not None and not t.passed:
         again = ("" if t.replicated is None else
                  f", {t.replicated_pixels} replicated in fresh renders"
@@ -355,7 +383,7 @@ figure{margin:0;text-align:center;font-size:12px} figure img{image-rendering:pix
 table{border-collapse:collapse;margin:10px 0;font-size:13px} td,th{border:1px solid #ccc;padding:4px 8px}
 .ok{color:#1a7f37} .warn{color:#a15c00} .bad{color:#c62828;font-weight:bold} .sw{display:inline-block;width:10px;height:10px;margin-right:6px}
 .verdict{font-size:18px;padding:8px 12px;display:inline-block;border-radius:4px}
-.pass{background:#e6f4ea} .fail{background:#fdecea} .desc{color:#555} svg{max-width:100%;height:auto}
+.pass{background:#e6f4ea} .fail{background:#fdecea} .inconclusive{background:#fff4e0} .desc{color:#555} svg{max-width:100%;height:auto}
 .bar svg{width:420px}
 """
 
@@ -373,10 +401,11 @@ def build(run_dir: str, res: Results | None = None) -> str:
 
 def _write(run_dir: str, res: Results) -> str:
     colours = charts.palette(res)
-    checks, failed = res.checks, len(res.failed)
+    checks, n = res.checks, res.counts()
     m = res.machine
-    verdict = ("pass" if failed == 0 else "fail",
-               f"{len(checks) - failed} of {len(checks)} checks passed")
+    verdict = ("fail" if n["fail"] else "inconclusive" if n["inconclusive"] else "pass",
+               f"{n['pass']} of {len(checks)} checks pass, {n['inconclusive']} inconclusive, "
+               f"{n['fail']} fail")
     toc = " · ".join(f"<a href='#{s.name}'>{s.name}</a>" for s in res.scenes)
     body = "".join(_scene_section(s, run_dir, colours) for s in res.scenes)
     page = f"""<!DOCTYPE html>

@@ -39,7 +39,9 @@ VERSION = 1
 #: in every failure-case row ``tail_ratio`` and the NaN/negative counts.
 #: 2: per scene ``speed`` (the speed-and-images stage at the display
 #: resolution); the small-image ``equal_time`` is no longer written.
-MINOR_VERSION = 2
+#: 3: three outcomes (checks.py): ``outcome`` on every check, unbiasedness,
+#: convergence and failure-case test; ``seed_set``.
+MINOR_VERSION = 3
 SCHEMA_FILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results.schema.json")
 
 DEFINITIONS = {
@@ -69,13 +71,28 @@ def _flat(default=None):
 
 # -------------------------------- Checks --------------------------------------
 
+#: The three outcomes of a check (checks.py decides which).
+OUTCOMES = ("pass", "fail", "inconclusive")
+
+
 @dataclass
 class Check:
-    """One verdict of the run: ``id`` is ``<scene or case>/<estimator>/<what>``."""
+    """One verdict of the run: ``id`` is ``<scene or case>/<estimator>/<what>``;
+    ``outcome`` one of :data:`OUTCOMES`. ``passed`` is "did not fail": true
+    for pass and for inconclusive (the evidence could not decide), which
+    is what the exit code and JUnit go by unless ``--strict``."""
 
     id: str
     passed: bool
     message: str
+    outcome: str = ""
+
+    def __post_init__(self):
+        if not self.outcome:                # (files before minor version 3)
+            self.outcome = "pass" if self.passed else "fail"
+        if self.outcome not in OUTCOMES:
+            raise ValueError(f"check outcome must be one of {OUTCOMES}, got {self.outcome!r}")
+        self.passed = self.outcome != "fail"
 
 
 # ---------------------------- Scene comparisons -------------------------------
@@ -115,6 +132,15 @@ class Unbiasedness:
     pooled_p: list[float]
     summary: str
     samples_per_pixel: int | None = _optional()
+    #: checks.py's reading of the test (minor version 3): pass | fail |
+    #: inconclusive, why, rejected pixels by direction, fireflies over all
+    #: rungs, and (inconclusive) samples per pixel that would see the tail.
+    outcome: str = ""
+    reason: str = ""
+    rejected_up: int = 0
+    rejected_down: int = 0
+    tail_events: int = 0
+    samples_needed: float | None = _optional()
 
 
 @dataclass
@@ -127,6 +153,8 @@ class Convergence:
     exact: bool
     consistent_with_mc: bool
     passed: bool
+    outcome: str = ""               # checks.convergence_outcome (minor version 3)
+    message: str = ""
 
 
 @dataclass
@@ -280,6 +308,11 @@ class BatchTest:
     replicated_pixels: int = 0
     replicated: bool | None = None
     replication_test: str | None = _optional()
+    #: checks.bias_outcome of the first test (minor version 3), as in Unbiasedness
+    outcome: str = ""
+    reason: str = ""
+    tail_events: int = 0
+    samples_needed: float | None = _optional()
 
 
 @dataclass
@@ -292,6 +325,8 @@ class SunSplit:
     sunless_reference_mean: float
     expected_sun_hits_per_pixel: float | None
     sun_share_of_image: float
+    sunless_outcome: str = ""      # checks.bias_outcome there (minor version 3)
+    sunless_reason: str = ""
 
 
 @dataclass
@@ -394,6 +429,7 @@ class Results:
     checks: list[Check]
     failures: list[CaseResult] = field(default_factory=list)
     estimator_facts: dict[str, EstimatorInfo] = field(default_factory=dict)
+    seed_set: int = 0
     definitions: dict[str, str] = field(default_factory=lambda: dict(DEFINITIONS))
     schema: str = SCHEMA
     version: int = VERSION
@@ -401,11 +437,20 @@ class Results:
 
     @property
     def passed(self) -> bool:
+        """No check failed (inconclusive ones do not count against it)."""
         return all(c.passed for c in self.checks)
 
     @property
     def failed(self) -> list[Check]:
-        return [c for c in self.checks if not c.passed]
+        return [c for c in self.checks if c.outcome == "fail"]
+
+    @property
+    def inconclusive(self) -> list[Check]:
+        return [c for c in self.checks if c.outcome == "inconclusive"]
+
+    def counts(self) -> dict[str, int]:
+        """How many checks had each outcome."""
+        return {o: sum(c.outcome == o for c in self.checks) for o in OUTCOMES}
 
 
 # ------------------------------ JSON, both ways --------------------------------
@@ -552,10 +597,11 @@ def write_csv(path: str, results: Results) -> None:
 
 def summary(results: Results) -> str:
     """summary.md: the verdict, then a table per scene and the failures group."""
-    checks, failed = results.checks, results.failed
+    checks, failed, n = results.checks, results.failed, results.counts()
     lines = [f"# mcillum validation — profile {results.profile}",
              "",
-             f"{len(checks) - len(failed)} of {len(checks)} checks passed; "
+             f"{n['pass']} of {len(checks)} checks pass, {n['inconclusive']} inconclusive, "
+             f"{n['fail']} fail; "
              f"{results.variant}, mitsuba {results.mitsuba_version}, "
              f"drjit {results.drjit_version}, {results.wall_seconds:.0f} s.", ""]
     for scene in results.scenes:
@@ -571,8 +617,9 @@ def summary(results: Results) -> str:
             top, u, c = est.top, est.unbiasedness, est.convergence
             lines.append(
                 f"| {est.name} | {top.relmse:.3g} | {top.bias:+.2e} ± {top.bias_se:.1e} | "
-                f"{'yes' if u.passed else '**NO**'} ({100 * u.pass_fraction:.1f}) | "
-                + ("exact" if c.exact else f"{c.slope:+.2f} [{c.low:+.2f}, {c.high:+.2f}]")
+                f"{_word(u.outcome)} ({100 * u.pass_fraction:.1f}) | "
+                + ("exact" if c.exact else f"{_word(c.outcome)} {c.slope:+.2f} "
+                   f"[{c.low:+.2f}, {c.high:+.2f}]")
                 + f" | {top.samples_per_second / 1e6:.2f} M | {top.efficiency:.3g} |")
         if scene.speed:
             lines += ["", *speed_summary(scene.speed)]
@@ -588,7 +635,15 @@ def summary(results: Results) -> str:
         lines.append("")
     if failed:
         lines += ["## Failed checks", ""] + [f"- `{c.id}`: {c.message}" for c in failed]
+    if results.inconclusive:
+        lines += ["", "## Inconclusive at this budget", ""] + \
+            [f"- `{c.id}`: {c.message}" for c in results.inconclusive]
     return "\n".join(lines) + "\n"
+
+
+def _word(outcome: str) -> str:
+    """pass, **FAIL** or *inconclusive* for summary.md."""
+    return {"fail": "**FAIL**", "inconclusive": "*inconclusive*"}.get(outcome, outcome)
 
 
 def ranking_text(ranking: list[Placement]) -> str:
@@ -632,18 +687,25 @@ def _failure_cells(case: CaseResult, est) -> str:
             + (f"{m.spp:.3g} [{m.low:.3g}, {m.high:.3g}]" if m else "never (biased)"))
 
 
-def write_junit(path: str, results: Results) -> None:
+def write_junit(path: str, results: Results, strict: bool = False) -> None:
+    """One test case per check: a fail is a <failure>, an inconclusive check a
+    <skipped> with its reason (a <failure> with ``strict``)."""
     checks = results.checks
+    n = results.counts()
+    failures = n["fail"] + (n["inconclusive"] if strict else 0)
+    skipped = 0 if strict else n["inconclusive"]
     out = ['<?xml version="1.0" encoding="UTF-8"?>',
            f'<testsuite name="mcillum.validate.{results.profile}" tests="{len(checks)}" '
-           f'failures="{len(results.failed)}" time="{results.wall_seconds:.3f}">']
+           f'failures="{failures}" skipped="{skipped}" time="{results.wall_seconds:.3f}">']
     for c in checks:
         scene, _, rest = c.id.partition("/")
         out.append(f'  <testcase classname={quoteattr("mcillum." + scene)} '
                    f'name={quoteattr(rest)}>')
-        if not c.passed:
+        if c.outcome == "fail" or (strict and c.outcome == "inconclusive"):
             out.append(f'    <failure message={quoteattr(c.message)}>'
                        f'{escape(c.message)}</failure>')
+        elif c.outcome == "inconclusive":
+            out.append(f'    <skipped message={quoteattr("inconclusive: " + c.message)}/>')
         out.append("  </testcase>")
     out.append("</testsuite>")
     files.write_text(path, "\n".join(out) + "\n")

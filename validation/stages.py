@@ -114,9 +114,10 @@ def render_seeds(ctx) -> None:
                                   seeds.stream(name).take(k), _compile, ctx.label)}
 
 
-def _fresh(ctx, name: str) -> np.ndarray:
-    """K new renders of one estimator (the context's replication stream; kept)."""
-    spp, k = ctx.plan.spp, ctx.plan.seeds
+def _fresh(ctx, name: str, spp: int | None = None, k: int | None = None) -> np.ndarray:
+    """K new renders of one estimator at the case's spp (or ``spp``, ``k``:
+    a scene's top rung), from the context's replication stream; kept."""
+    spp, k = spp or ctx.plan.spp, k or ctx.plan.seeds
     stream = ctx.streams["replication"]
     return sweeps.kept(ctx, _file(ctx, f"{stream}-{name}"), stream,
                        {name: ctx.integrators[name]}, {name: spp}, k,
@@ -140,14 +141,22 @@ def build_reference(ctx) -> None:
 
 def measure(ctx) -> None:
     """Per estimator: metrics per rung, the pooled unbiasedness test,
-    convergence (:mod:`analysis`)."""
+    convergence (:mod:`analysis`), each read by the rules of checks.py
+    (fireflies in an estimator's renders, or in path's for the reference); a
+    rejection that counts is tested again on K fresh renders at the top rung."""
     ladder, ref = ctx.plan.ladder, ctx.reference
+    events = {name: tails.tail_events([ctx.units[spp][name].images for spp in ladder],
+                                      ref.mean)[0] for name in ctx.integrators}
+    path_events = events.get(REFERENCE)             # path's renders: the reference's tail
     for name in ctx.integrators:
         runs = [analysis.run_stats(ctx.units[spp][name], ref) for spp in ladder]
         stacks = {spp: ctx.units[spp][name].images for spp in ladder}
         ctx.measured[name] = EstimatorResult(
             name, ctx.params, ctx.compile_seconds.get(name, float("nan")), runs,
-            analysis.unbiasedness(stacks, ref, runs, ALPHA), analysis.convergence(runs))
+            analysis.unbiasedness(stacks, ref, runs, ALPHA, path_events,
+                                  lambda name=name: _fresh(ctx, name, ladder[-1],
+                                                           ctx.plan.renders)),
+            analysis.convergence(runs, heavy=bool(events[name].any())))
 
 
 def judge_scene(ctx) -> None:
@@ -230,7 +239,8 @@ def _refusal_message(error: UnreachableContentError) -> str:
 
 def test_bias(ctx) -> None:
     """The batch-means test of each estimator's K renders against the
-    reference; a rejection is tested again on K fresh renders."""
+    reference, read by the rules of checks.py; a rejection that counts is
+    tested again on K fresh renders."""
     units = ctx.units[ctx.plan.spp]
     for name, row in ctx.rows.items():
         n = row.numbers
@@ -240,21 +250,33 @@ def test_bias(ctx) -> None:
 
 
 def _replicated_test(ctx, name: str, x: np.ndarray) -> BatchTest:
+    ref = ctx.reference.mean
+    units = ctx.units[ctx.plan.spp]
+    path_events = (tails.tail_events([units[REFERENCE].images], ref)[0]
+                   if REFERENCE in units and name != REFERENCE else None)
+
+    def decide(comparison, renders):
+        events, n, carried = tails.tail_events([renders], ref)
+        return checks.bias_outcome(comparison, events, n, ctx.plan.spp * n, carried,
+                                   path_events)
+
     return statistics.replicated_compare(x[..., :3], ctx.reference.moments(),
-                                         lambda: _fresh(ctx, name)[..., :3], ALPHA)
+                                         lambda: _fresh(ctx, name)[..., :3], ALPHA, decide)
 
 
 def split_sun(ctx) -> None:
-    """Heavy-tail cases on a map with a sun: estimators whose rejection
-    replicated are tested again on the map without its sun (rendering is
-    linear in the map, envmaps/sun.py), with the sun's facts and the number
-    of direct hits each estimator expects, N·Ω·max p."""
-    failed = [n for n, row in ctx.rows.items()
-              if row.numbers and row.numbers.test and row.numbers.test.replicated]
-    if not failed or ctx.plan.group != "heavy_tail" or "envmap" not in ctx.resolved:
+    """Heavy-tail cases on a map with a sun: estimators whose test was
+    inconclusive (a rejection a tail can explain) or biased are tested again
+    on the map without its sun (rendering is linear in the map,
+    envmaps/sun.py), by the same rules: a bias there is a bias, whatever the
+    sun does. With the sun's facts and the number of direct hits each
+    estimator expects, N·Ω·max p."""
+    tested = [n for n, row in ctx.rows.items() if row.numbers and row.numbers.test
+              and row.numbers.test.outcome != "pass"]
+    if not tested or ctx.plan.group != "heavy_tail" or "envmap" not in ctx.resolved:
         return
     sunless_path, facts = sun.without_sun(ctx.resolved["envmap"])
-    sub = ctx.derive([*failed, REFERENCE], label=f"{ctx.id} sunless",
+    sub = ctx.derive([*tested, REFERENCE], label=f"{ctx.id} sunless",
                      streams={"renders": "sunless", "replication": "sunless_replication"},
                      envmap=sunless_path)
     for stage in (load, choose_estimators, render_seeds, build_reference):
@@ -262,12 +284,12 @@ def split_sun(ctx) -> None:
     samples = ctx.plan.seeds * ctx.plan.spp
     sunless_mean = float(sub.reference.mean[..., :3].mean())
     image_mean = float(ctx.reference.mean[..., :3].mean())
-    for name in failed:
+    for name in tested:
         test = _replicated_test(sub, name, sub.units[ctx.plan.spp][name].images)
         ctx.rows[name].numbers.sun = SunSplit(
-            facts, test.passed or not test.replicated, test.test, sunless_mean,
-            expected_sun_hits(name, samples, facts["solid_angle"]),
-            1.0 - sunless_mean / image_mean)
+            facts, not (test.outcome == "fail" and test.replicated), test.test,
+            sunless_mean, expected_sun_hits(name, samples, facts["solid_angle"]),
+            1.0 - sunless_mean / image_mean, test.outcome, test.reason)
 
 
 def expected_sun_hits(name: str, samples: int, solid_angle: float) -> float | None:
@@ -279,8 +301,9 @@ def expected_sun_hits(name: str, samples: int, solid_angle: float) -> float | No
 
 
 def judge_case(ctx) -> None:
+    pixels = int(np.prod(ctx.reference.mean.shape[:2]))
     for row in ctx.rows.values():
-        row.verdict = checks.case_verdict(row)
+        row.verdict = checks.case_verdict(row, pixels)
     ctx.checks = checks.run(checks.CASE, ctx, ctx.units, ctx.reference)
 
 

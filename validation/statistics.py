@@ -68,9 +68,12 @@ class Comparison:
     pooled_p: np.ndarray     # (C,)
     alpha_pooled: float      # level per pooled channel test
     passed: bool
+    pooled_diff: np.ndarray | None = None   # (C,) image mean, estimator − reference
+    pooled_se: np.ndarray | None = None     # (C,) its standard error
 
     def summary(self) -> str:
-        verdict = "PASS" if self.passed else "FAIL"
+        # (the test's own result; checks.py decides what a rejection means)
+        verdict = "no rejection" if self.passed else "rejected"
         pooled = ", ".join(f"{t:+.2f}" for t in self.pooled_t)
         return (f"{verdict}: {self.pass_fraction:.2%} of {self.n_pixels} pixels pass "
                 f"at Šidák α_px={self.alpha_pixel:.2e} over {self.n_channels} channels "
@@ -188,6 +191,8 @@ def compare(estimator, reference, alpha: float = ALPHA,
     tested = p[mask]                                                 # (P, C)
 
     # Pooled: per channel, the mean over the whole image.
+    pooled_diff = est.image_mean[:c] - ref.image_mean[:c]
+    pooled_se = np.sqrt(est.image_var[:c] / est.n + ref.image_var[:c] / ref.n)
     if mask.all():
         pooled_t, pooled_p = welch(est.image_mean[:c], est.image_var[:c], est.n,
                                    ref.image_mean[:c], ref.image_var[:c], ref.n)
@@ -202,7 +207,7 @@ def compare(estimator, reference, alpha: float = ALPHA,
     return Comparison(alpha, alpha_pixel, n_pixels, n_channels, pixel_p, pixel_t,
                       float((tested.min(axis=-1) >= alpha_pixel).mean()),
                       float(tested.min()), np.atleast_1d(pooled_t),
-                      np.atleast_1d(pooled_p), alpha_pooled, passed)
+                      np.atleast_1d(pooled_p), alpha_pooled, passed, pooled_diff, pooled_se)
 
 
 def mean_interval(values: np.ndarray, alpha: float = ALPHA):
@@ -216,26 +221,49 @@ def mean_interval(values: np.ndarray, alpha: float = ALPHA):
     return float(values.mean()), float(half)
 
 
-def replicated_compare(x, reference, fresh, alpha: float = ALPHA) -> BatchTest:
-    """:func:`compare` of renders ``x`` with ``reference``; where it rejects,
-    the same test on ``fresh()`` renders at the rejected pixels and on the
-    image mean. ``replicated`` is None when nothing needed replicating, else
-    whether any rejection replicated."""
+def replicated_compare(x, reference, fresh, alpha: float = ALPHA, decide=None) -> BatchTest:
+    """:func:`compare` of renders ``x`` with ``reference``, read by
+    ``decide(comparison, renders)`` (a :class:`checks.Decision`; None: every
+    rejection counts). Where a rejection counts (outcome "fail"), the same
+    test on ``fresh()`` renders at the rejected pixels and on the image mean:
+    ``replicated`` says whether a rejection came back in the same direction
+    (and, with ``decide``, the fresh renders' own reading does not excuse it).
+    ``replicated`` is None when nothing needed replicating: a pass, or an
+    inconclusive reading (fresh renders would miss the same tail)."""
     first = compare(x, reference, alpha)
+    d = decide(first, x) if decide else None
+    outcome = d.outcome if d else ("pass" if first.passed else "fail")
     out = BatchTest(first.passed, first.pass_fraction, first.min_p,
-                    [float(p) for p in first.pooled_p], first.alpha_pixel, first.summary())
-    if first.passed:
-        return out
+                    [float(p) for p in first.pooled_p], first.alpha_pixel, first.summary(),
+                    outcome=outcome, reason=d.reason if d else "",
+                    tail_events=d.tail_events if d else 0,
+                    samples_needed=d.samples_needed if d else None)
     rejected = first.pixel_p < first.alpha_pixel
+    out.rejected_pixels = int(rejected.sum())
+    if outcome != "fail":
+        return out
     y = fresh()
+    pixels_again, pooled, again = replicate(first, y, reference, alpha)
+    excused = d is not None and decide(again, y).outcome == "inconclusive"
+    out.replicated_pixels = int(pixels_again.sum())
+    out.replicated = bool((pixels_again.any() or pooled) and not excused)
+    out.replication_test = again.summary() + (
+        " (the fresh renders caught fireflies: a tail, not a bias)" if excused else "")
+    return out
+
+
+def replicate(first: Comparison, y, reference, alpha: float = ALPHA):
+    """Test fresh renders ``y`` where ``first`` rejected: (pixels (H, W) that
+    reject again in the same direction, Šidák over the rejected ones; whether
+    the image mean rejects again in the same direction; the fresh renders'
+    own :func:`compare`)."""
+    rejected = first.pixel_p < first.alpha_pixel
     again = compare(y, reference, alpha)
     pixels_again = np.zeros_like(rejected)
     if rejected.any():
         at = compare(y, reference, alpha, mask=rejected)
-        pixels_again = rejected & (at.pixel_p < at.alpha_pixel)
-    pooled = first.pooled_p.min() < first.alpha_pooled and \
-        again.pooled_p.min() < again.alpha_pooled
-    out.rejected_pixels, out.replicated_pixels = int(rejected.sum()), int(pixels_again.sum())
-    out.replicated = bool(pixels_again.any() or pooled)
-    out.replication_test = again.summary()
-    return out
+        same_way = np.sign(at.pixel_t) == np.sign(first.pixel_t)
+        pixels_again = rejected & (at.pixel_p < at.alpha_pixel) & same_way
+    pooled = (first.pooled_p < first.alpha_pooled) & (again.pooled_p < again.alpha_pooled) & \
+        (np.sign(first.pooled_t) == np.sign(again.pooled_t))
+    return pixels_again, bool(pooled.any()), again

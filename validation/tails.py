@@ -80,6 +80,30 @@ def firefly_fraction(renders: np.ndarray, reference: np.ndarray) -> float:
     return float(firefly_mask(renders, reference).mean())
 
 
+def tail_events(stacks, reference: np.ndarray, weights=None):
+    """Fireflies per pixel (H, W) over every render of ``stacks`` (an iterable
+    of (K, H, W, C) stacks, e.g. the rungs of a ladder), the number of
+    renders, and what the fireflies carried (C,): their excess over the
+    reference, summed over pixels and averaged over renders as the mean of
+    the stacks weighs them (``weights``: one per stack, e.g. its spp, as
+    statistics.Moments.pooled weighs rungs; default equal), in units of the
+    image mean. Each firefly is a render in which that pixel caught a rare,
+    bright contribution: the evidence that an estimator is heavy-tailed here."""
+    stacks = list(stacks)
+    weights = [1.0] * len(stacks) if weights is None else list(weights)
+    events, n, carried, total = 0, 0, 0.0, 0.0
+    r = reference[..., :3]
+    for x, w in zip(stacks, weights):
+        x = np.nan_to_num(np.asarray(x[..., :3], np.float64))
+        fire = firefly_mask(x, r)                                   # (K, H, W)
+        events = events + fire.sum(axis=0)
+        excess = np.where(fire[..., None], x - r, 0.0).mean(axis=(1, 2))   # (K, C)
+        carried = carried + w * excess.sum(axis=0)
+        total += w * x.shape[0]
+        n += x.shape[0]
+    return np.asarray(events, np.int64), n, np.asarray(carried, np.float64) / max(total, 1e-300)
+
+
 def spp_to_match(relmse_est: np.ndarray, relmse_ref: np.ndarray, spp: int,
                  boot: int = 2000, level: float = 0.9, seed: int = 0) -> SppToMatch:
     """spp an estimator needs for the mean relMSE ``path`` has at ``spp``,
