@@ -25,17 +25,19 @@ what a rejection of the unbiasedness test means.
 Failure-case verdicts (:func:`case_verdict`): ``fine``; ``heavy-tailed``
 (passes, but the error is carried by rare renders or pixels:
 :func:`tails.is_heavy`); ``refused``; ``biased (opt-in)``;
-``inconclusive: heavy tail`` (every rejection is one a tail can explain, or a
-sun too small for any render to hit: fewer than :data:`SUN_HITS` expected
-hits per pixel by the estimator's largest pdf); ``inconclusive: not
-replicated`` (a rejection that counts did not come back in K fresh renders:
-an α-chance alarm, or a bias too small for K); and the two that fail:
-``biased`` (a rejection that counts and replicated, or a bias on the map
-without its sun, tested by the same rules) and ``non-finite/negative``.
-Replication can decide only where the test's assumptions hold: fresh renders
-miss an unseen tail in the same pixels, so an inconclusive reading is not
-replicated. An estimator with no largest pdf (BSDF sampling) gets no sun
-excuse: a rejection that counts stands.
+``inconclusive: heavy tail`` (every rejection is one a tail can explain; or,
+on a map with a sun, a rejection that replicated but not on the map without
+the sun, by an estimator whose renders caught fireflies and which is expected
+to hit the sun fewer than :data:`SUN_HITS` times per pixel by its largest pdf,
+or has no such bound; or a sun no render is expected to hit anywhere);
+``inconclusive: not replicated`` (a rejection that counts did not come back
+in K fresh renders: an α-chance alarm, or a bias too small for K); and the
+two that fail: ``biased`` (a rejection that counts and replicated and no sun
+explains, or a bias on the map without its sun, tested by the same rules) and
+``non-finite/negative``. Replication can decide only where the test's
+assumptions hold: fresh renders miss an unseen tail in the same pixels, so an
+inconclusive reading is not replicated. An estimator without fireflies gets
+no sun excuse (a firefly clamp is exactly that), whatever its pdf.
 """
 
 from __future__ import annotations
@@ -280,11 +282,14 @@ def case_verdict(row, pixels: int) -> str:
         return HEAVY
     if not t.replicated:
         return NOT_REPLICATED
-    hits = None if sun_ is None else sun_.expected_sun_hits_per_pixel
-    if hits is not None and hits < SUN_HITS and (
-            t.tail_events > 0 or hits * pixels < SUN_HITS):
-        # a sun too small to be hit in a pixel, by an estimator whose renders
-        # show a tail (or too small to be hit anywhere in the image)
+    if sun_ is None:
+        return "biased"
+    hits = sun_.expected_sun_hits_per_pixel
+    if hits is not None and hits * pixels < SUN_HITS:
+        return HEAVY                     # a sun no render is expected to hit anywhere
+    if t.tail_events > 0 and (hits is None or hits < SUN_HITS):
+        # not biased without the sun, heavy-tailed with it, and not expected
+        # to hit the sun SUN_HITS times per pixel (or no bound on its pdf)
         return HEAVY
     return "biased"
 
