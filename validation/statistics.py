@@ -27,13 +27,16 @@ Pixels of constant radiance (zero variance on both sides) are compared to
 float32 rounding: the standard error has a floor of 1e-5 × |mean|, so two
 exact answers that differ by more than ~4e-5 relative still fail.
 
-Replication (:func:`replicated_compare`): a per-pixel test on K renders of a
-heavy-tailed estimator rejects more often than its level says (the mean of a
-right-skewed sample is usually low, and so is its variance estimate). A
-rejection is therefore believed only if it replicates: K fresh renders, tested
-at the rejected pixels alone (Šidák over those) and on the image mean, must
-reject again. An artefact of an unseen tail replicates with probability about
-α; a bias replicates with the test's power.
+Reading a rejection (:mod:`checks`, "the rules of evidence"): a per-pixel
+test on K renders of a heavy-tailed estimator rejects more often than its
+level says (the mean of a right-skewed sample is usually low, and so is its
+variance estimate). The checks module decides which rejections count (by
+their direction and the estimator's fireflies); :func:`replicated_compare`
+and :func:`replicate` test a rejection that counts again on K fresh renders,
+at the rejected pixels (Šidák over those, same direction) and on the image
+mean. A light-tailed false alarm replicates with probability about α, a bias
+with the test's power; an unseen tail would replicate, which is why only
+rejections that count are replicated.
 """
 
 from __future__ import annotations
