@@ -336,7 +336,7 @@ def describe(v: str, n) -> str:
         text += f"; {t.reason}"
         if n.sun is not None:
             s, hits = n.sun, n.sun.expected_sun_hits_per_pixel
-            text += (f"; without the sun it is {s.sunless_outcome or 'not biased'}; the sun "
+            text += (f"; without the sun: {s.sunless_outcome or 'not biased'}; the sun "
                      f"({s.sun['solid_angle']:.2g} sr, {100 * s.sun_share_of_image:.0f} % of "
                      "path's image) is expected "
                      + (f"{hits:.2g} direct hits per pixel in all {n.samples_per_pixel} samples"
