@@ -141,12 +141,18 @@ def test_sun_case_says_inconclusive_for_correct_estimators_and_fails_the_control
     assert set(cos.images) == {"median", "worst"}
 
 
+FULL = {c.id: c for c in profiles.FULL.failures}
+
+
 @pytest.mark.slow
-def test_probe_sun_case_fails_the_controls(run_case):
+@pytest.mark.parametrize("case", [QUICK["failures.heavy_tail.probe_spheres_sunrise"],
+                                  FULL["failures.heavy_tail.sun_sky"]],
+                         ids=["quick sunrise", "full sun_sky"])
+def test_sun_cases_fail_the_controls(run_case, case):
     """The same on probe_spheres under the sunrise probe (its sun is a real
-    one, 1024×512 texels, 4e4 at its peak)."""
-    rows, checks, controls = run_with_controls(
-        run_case, QUICK["failures.heavy_tail.probe_spheres_sunrise"])
+    one, 1024×512 texels, 4e4 at its peak), and on sun_sky at the full
+    profile's budget (32², 16 spp × 128 seeds)."""
+    rows, checks, controls = run_with_controls(run_case, case)
     for name in ("cosine_hemisphere", "uniform_hemisphere", "mis", "path"):
         assert rows[name].verdict not in FAILING, (name, rows[name].verdict)
     for c in controls:
