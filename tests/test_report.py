@@ -322,3 +322,20 @@ def test_browser_check_catches_a_broken_page(tmp_path):
                     '<img src="http://127.0.0.1:9/x.png"></body></html>')
     widths, _, errors, external = inspect_in_chromium(page, tmp_path)
     assert widths == [0, 0] and errors and external == ["http://127.0.0.1:9/x.png"]
+
+
+def test_strict_exit_code_counts_inconclusive_checks(tmp_path, monkeypatch, capsys):
+    """`mcillum validate` exits 0 when checks are only inconclusive, 1 with
+    --strict (the pipeline replaced by a synthetic run with one of each)."""
+    from mcillum.validation import cli, pipeline
+
+    res = synthetic_results()
+    res.checks = [c for c in res.checks if c.outcome != "fail"]
+    monkeypatch.setattr(pipeline, "validate", lambda *a, **k: res)
+    args = ["validate", "--out", str(tmp_path / "out"), "--cache", str(tmp_path / "c")]
+    assert cli.main(args) == 0
+    assert cli.main([*args, "--strict"]) == 1
+    assert "1 inconclusive, 0 fail" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as exit_:
+        cli.main([*args, "--seed-set", "1000"])
+    assert exit_.value.code == 2
