@@ -121,7 +121,9 @@ def conv(slope, low, high, exact=False):
     ((-0.2, -0.5, 0.1), False, "fail"),          # narrow, flat: a bias floor
     ((-0.5, -0.7, -0.3), False, "fail"),
     ((-0.5, -0.7, -0.3), True, "inconclusive"),  # heavy-tailed: pre-asymptotic
-    ((-0.3, -1.0, 0.4), False, "inconclusive"),  # above −1 but too wide
+    ((-0.3, -1.0, 0.4), False, "inconclusive"),  # contains −1 and 0
+    ((0.3, -0.8, 1.4), False, "inconclusive"),   # above −1 but too wide (2.2) to mean it
+    ((-0.3, -0.8, 0.2), False, "fail"),          # the same, narrow (1.0): it means it
 ])
 def test_convergence_outcomes(interval, heavy, expected):
     assert checks.convergence_outcome(conv(*interval), heavy)[0] == expected
@@ -131,3 +133,37 @@ def test_convergence_of_exact_and_unmeasurable_estimators():
     nan, inf = float("nan"), float("inf")
     assert checks.convergence_outcome(conv(nan, nan, nan, True), False)[0] == "pass"
     assert checks.convergence_outcome(conv(nan, -inf, inf), False)[0] == "inconclusive"
+
+
+def replicated(x, fresh, ref, mean):
+    def decide(c, renders):
+        events, n, carried = tails.tail_events([renders], mean)
+        return checks.bias_outcome(c, events, n, SPP * n, carried)
+    return statistics.replicated_compare(x, ref, fresh, ALPHA, decide)
+
+
+def test_replication_tests_only_the_rejections_that_counted():
+    """A correct heavy-tailed estimator with one pixel too bright by chance:
+    the upward pixel counts, but in fresh (correct) renders it comes back
+    with probability about α, and the downward tail pixels, which did not
+    count, are not replicated (they would come back: the same tail is missed
+    again). A real upward bias comes back. Bound: binomial at 0.001 for
+    α = 0.01 over 60 trials."""
+    rng = np.random.default_rng(5)
+    ref, mean = reference()
+    flukes = []
+    for _ in range(60):
+        x = renders(rng)
+        x[:, 0, 0] += 0.6                       # one pixel off by chance
+        t = replicated(x, lambda: renders(rng), ref, mean)
+        flukes.append(t.outcome == "fail" and t.replicated)
+    assert sum(flukes) <= stats.binom.ppf(0.999, 60, ALPHA), sum(flukes)
+
+    def biased():
+        x = renders(rng)
+        x[:, :4, :4] += 1.0
+        return x
+
+    real = [replicated(biased(), biased, ref, mean) for _ in range(20)]
+    assert sum(t.outcome == "fail" and bool(t.replicated) for t in real) >= 19, \
+        [(t.outcome, t.replicated) for t in real]

@@ -63,12 +63,15 @@ def unbiasedness(stacks: dict, reference, runs: list[RunStats], alpha: float,
     samples = int(sum(spp * x.shape[0] for spp, x in stacks.items()))
     d = checks.bias_outcome(c, events, n, samples, carried, reference_events)
     if d.outcome == "fail" and fresh is not None:
+        def decide(comparison, renders):
+            ev, k, carry = tails.tail_events([renders], reference.mean)
+            return checks.bias_outcome(comparison, ev, k, top * k, carry, reference_events)
+
         y = fresh()[..., :3]
-        pixels, image, again = statistics.replicate(c, y, ref, alpha)
-        fresh_events, k, fresh_carried = tails.tail_events([y], reference.mean)
-        excused = checks.bias_outcome(again, fresh_events, k, top * k, fresh_carried,
-                                      reference_events).outcome == "inconclusive"
-        if not (pixels.any() or image) or excused:
+        replicated, pixels, _, excused = statistics.replicated_rejection(
+            c, d, y, ref, alpha, decide)
+        k = y.shape[0]
+        if not replicated:
             d.outcome = "inconclusive"
             d.reason += (f"; not replicated in {k} fresh renders at {top} spp"
                          + (" (they caught fireflies: a tail)" if excused else ""))

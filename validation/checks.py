@@ -36,8 +36,11 @@ two that fail: ``biased`` (a rejection that counts and replicated and no sun
 explains, or a bias on the map without its sun, tested by the same rules) and
 ``non-finite/negative``. Replication can decide only where the test's
 assumptions hold: fresh renders miss an unseen tail in the same pixels, so an
-inconclusive reading is not replicated. An estimator without fireflies gets
-no sun excuse (a firefly clamp is exactly that), whatever its pdf.
+inconclusive reading is not replicated, and only the rejections that counted
+are tested again. An estimator without fireflies gets no sun excuse (a
+firefly clamp is exactly that), whatever its pdf, unless no render is
+expected to hit the sun anywhere; an upward rejection never gets one (a
+missed sun only darkens).
 """
 
 from __future__ import annotations
@@ -119,6 +122,9 @@ class Decision:
     rejected_down: int = 0
     samples_needed: float | None = None   # samples per pixel (inconclusive only)
     tail_events: int = 0            # fireflies in the estimator's renders
+    pixels: np.ndarray | None = None      # (H, W) the pixel rejections that counted
+    pooled: np.ndarray | None = None      # (C,) the image-mean rejections that counted
+    counted_up: bool = False        # a rejection upward counted (no tail excuses it)
 
 
 def tail_can_carry(c, events: int, carried: np.ndarray) -> np.ndarray:
@@ -154,8 +160,13 @@ def bias_outcome(c, events: np.ndarray, renders: int, samples: int,
     carry = tail_can_carry(c, total, np.asarray(carried, np.float64))
     pooled_down, pooled_counted = bool(low.any()), bool((low & ~carry).any())
 
+    pixels = (up & ~ref_tail) | (down if not heavy else np.zeros_like(down))
+    up_ch = pooled & (np.asarray(c.pooled_t) > 0)
+    pooled_counted_ch = up_ch | (low & ~carry)
+
     def decide(outcome, reason, needed=None):
-        return Decision(outcome, reason, n_up, n_down, needed, total)
+        return Decision(outcome, reason, n_up, n_down, needed, total, pixels,
+                        pooled_counted_ch, bool(up_counted or up_ch.any()))
 
     if not (pooled.any() or rejected.any()):
         return decide("pass", "no rejection")
@@ -226,7 +237,8 @@ def convergence_outcome(c, heavy: bool) -> tuple[str, str]:
         return "fail", f"{text}: slower than {EXPECTED_SLOPE:+.0f}"
     if c.high < 0:
         return "pass", text
-    return "inconclusive", f"{text}: too wide (> {SLOPE_WIDTH}) to decide"
+    return "inconclusive", (f"{text}: contains 0 and does not lie more than "
+                            f"{SLOPE_TOLERANCE} above {EXPECTED_SLOPE:+.0f}: cannot decide")
 
 
 def finite(ctx, units, reference) -> list[Check]:
@@ -282,8 +294,8 @@ def case_verdict(row, pixels: int) -> str:
         return HEAVY
     if not t.replicated:
         return NOT_REPLICATED
-    if sun_ is None:
-        return "biased"
+    if sun_ is None or t.counted_up:
+        return "biased"                  # (a missed sun only ever darkens)
     hits = sun_.expected_sun_hits_per_pixel
     if hits is not None and hits * pixels < SUN_HITS:
         return HEAVY                     # a sun no render is expected to hit anywhere

@@ -84,7 +84,7 @@ def spp_for(model: CostModel, budget: float) -> int:
     """The spp whose render the model says takes ``budget`` seconds (≥ 1)."""
     if model.per_spp_s <= 0:
         return 1
-    return max(1, int(round((budget - model.fixed_s) / model.per_spp_s)))
+    return max(1, int(round((budget - max(model.fixed_s, 0.0)) / model.per_spp_s)))
 
 
 def overhead_share(model: CostModel, seconds: float) -> float:

@@ -313,6 +313,7 @@ class BatchTest:
     reason: str = ""
     tail_events: int = 0
     samples_needed: float | None = _optional()
+    counted_up: bool = False        # an upward rejection counted (checks.py)
 
 
 @dataclass
@@ -617,8 +618,10 @@ def summary(results: Results) -> str:
             top, u, c = est.top, est.unbiasedness, est.convergence
             lines.append(
                 f"| {est.name} | {top.relmse:.3g} | {top.bias:+.2e} ± {top.bias_se:.1e} | "
-                f"{_word(u.outcome)} ({100 * u.pass_fraction:.1f}) | "
-                + ("exact" if c.exact else f"{_word(c.outcome)} {c.slope:+.2f} "
+                f"{_word(u.outcome or ('pass' if u.passed else 'fail'))} "
+                f"({100 * u.pass_fraction:.1f}) | "
+                + ("exact" if c.exact else
+                   f"{_word(c.outcome or ('pass' if c.passed else 'fail'))} {c.slope:+.2f} "
                    f"[{c.low:+.2f}, {c.high:+.2f}]")
                 + f" | {top.samples_per_second / 1e6:.2f} M | {top.efficiency:.3g} |")
         if scene.speed:

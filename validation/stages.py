@@ -253,7 +253,7 @@ def _replicated_test(ctx, name: str, x: np.ndarray) -> BatchTest:
     ref = ctx.reference.mean
     units = ctx.units[ctx.plan.spp]
     path_events = (tails.tail_events([units[REFERENCE].images], ref)[0]
-                   if REFERENCE in units and name != REFERENCE else None)
+                   if REFERENCE in units else None)
 
     def decide(comparison, renders):
         events, n, carried = tails.tail_events([renders], ref)

@@ -240,33 +240,64 @@ def replicated_compare(x, reference, fresh, alpha: float = ALPHA, decide=None) -
                     [float(p) for p in first.pooled_p], first.alpha_pixel, first.summary(),
                     outcome=outcome, reason=d.reason if d else "",
                     tail_events=d.tail_events if d else 0,
-                    samples_needed=d.samples_needed if d else None)
+                    samples_needed=d.samples_needed if d else None,
+                    counted_up=d.counted_up if d else False)
     rejected = first.pixel_p < first.alpha_pixel
     out.rejected_pixels = int(rejected.sum())
     if outcome != "fail":
         return out
-    y = fresh()
-    pixels_again, pooled, again = replicate(first, y, reference, alpha)
-    excused = d is not None and decide(again, y).outcome == "inconclusive"
+    replicated, pixels_again, again, excused = replicated_rejection(
+        first, d, fresh(), reference, alpha, decide)
     out.replicated_pixels = int(pixels_again.sum())
-    out.replicated = bool((pixels_again.any() or pooled) and not excused)
+    out.replicated = replicated
     out.replication_test = again.summary() + (
         " (the fresh renders caught fireflies: a tail, not a bias)" if excused else "")
     return out
 
 
-def replicate(first: Comparison, y, reference, alpha: float = ALPHA):
-    """Test fresh renders ``y`` where ``first`` rejected: (pixels (H, W) that
-    reject again in the same direction, Šidák over the rejected ones; whether
-    the image mean rejects again in the same direction; the fresh renders'
-    own :func:`compare`)."""
+def replicated_rejection(first: Comparison, d, y, reference, alpha: float = ALPHA,
+                         decide=None):
+    """Did the rejections of ``first`` that counted (``d``, a
+    :class:`checks.Decision`; None: all of them) come back in fresh renders
+    ``y``? An upward one counts when it comes back; a downward pixel only if
+    the fresh renders caught no firefly; the image mean only where the fresh
+    renders' own reading counts it (``decide(again, y)``). Returns
+    (replicated, pixels (H, W) that came back, the fresh comparison, whether
+    a tail in the fresh renders excused a downward one)."""
     rejected = first.pixel_p < first.alpha_pixel
+    pixels = rejected if d is None or d.pixels is None else d.pixels
+    pooled = (first.pooled_p < first.alpha_pooled) if d is None or d.pooled is None \
+        else d.pooled
+    pixels_again, pooled_again, again = replicate(first, y, reference, alpha, pixels, pooled)
+    if d is None or decide is None:
+        return bool(pixels_again.any() or pooled_again.any()), pixels_again, again, False
+    d2 = decide(again, y)
+    up = pixels_again & (first.pixel_t > 0)
+    down = pixels_again & (first.pixel_t < 0)
+    counted_pooled = d2.pooled if d2.pooled is not None else np.ones_like(pooled_again)
+    replicated = bool(up.any() or (down.any() and d2.tail_events == 0)
+                      or (pooled_again & counted_pooled).any())
+    excused = not replicated and bool(down.any() or pooled_again.any())
+    return replicated, pixels_again, again, excused
+
+
+def replicate(first: Comparison, y, reference, alpha: float = ALPHA, pixels=None,
+              pooled=None):
+    """Test fresh renders ``y`` where ``first`` rejected (or at ``pixels``
+    (H, W) and image-mean channels ``pooled`` (C,) only): (pixels that reject
+    again in the same direction, Šidák over those tested; channels whose
+    image mean rejects again in the same direction; the fresh renders' own
+    :func:`compare`)."""
+    rejected = first.pixel_p < first.alpha_pixel
+    pixels = rejected if pixels is None else (np.asarray(pixels, bool) & rejected)
+    pooled = (first.pooled_p < first.alpha_pooled) if pooled is None else \
+        np.asarray(pooled, bool)
     again = compare(y, reference, alpha)
     pixels_again = np.zeros_like(rejected)
-    if rejected.any():
-        at = compare(y, reference, alpha, mask=rejected)
+    if pixels.any():
+        at = compare(y, reference, alpha, mask=pixels)
         same_way = np.sign(at.pixel_t) == np.sign(first.pixel_t)
-        pixels_again = rejected & (at.pixel_p < at.alpha_pixel) & same_way
-    pooled = (first.pooled_p < first.alpha_pooled) & (again.pooled_p < again.alpha_pooled) & \
+        pixels_again = pixels & (at.pixel_p < at.alpha_pixel) & same_way
+    pooled_again = pooled & (again.pooled_p < again.alpha_pooled) & \
         (np.sign(first.pooled_t) == np.sign(again.pooled_t))
-    return pixels_again, bool(pooled.any()), again
+    return pixels_again, pooled_again, again
