@@ -42,15 +42,26 @@ def run_stats(unit, reference) -> RunStats:
         tails.firefly_fraction(np.nan_to_num(x), r))
 
 
-def unbiasedness(stacks: dict, reference, runs: list[RunStats], alpha: float,
+def decider(reference_mean: np.ndarray, spp: int, reference_events: np.ndarray | None):
+    """``decide(comparison, renders)``: :func:`checks.bias_outcome` of a
+    comparison of ``renders`` (K, H, W, C) at ``spp``, with their own
+    fireflies as tail evidence (for replications and failure cases)."""
+    def decide(comparison, renders):
+        events, k, carried = tails.tail_events([renders], reference_mean)
+        return checks.bias_outcome(comparison, events, k, spp * k, carried, reference_events)
+    return decide
+
+
+def unbiasedness(stacks: dict, reference, runs: list[RunStats], alpha: float, tail,
                  reference_events: np.ndarray | None = None, fresh=None) -> Unbiasedness:
     """The batch-means test of all rungs ``stacks`` ({spp: (K, H, W, C)}) pooled,
     each weighted by its samples, against the reference, read by
-    :func:`checks.bias_outcome` (``reference_events``: fireflies per pixel in
-    path's renders); not tested (failed) where a render holds NaN/Inf. A
-    rejection that counts is tested again on ``fresh()`` renders (K more at
-    the top spp; None: not replicated): if it does not come back, the outcome
-    is inconclusive (an α-chance alarm, or a bias too small for K)."""
+    :func:`checks.bias_outcome` (``tail``: tails.tail_events of the stacks,
+    weighted by spp; ``reference_events``: fireflies per pixel in path's
+    renders); not tested (failed) where a render holds NaN/Inf. A rejection
+    that counts is tested again on ``fresh()`` renders (K more at the top
+    spp; None: not replicated): if it does not come back, the outcome is
+    inconclusive (an α-chance alarm, or a bias too small for K)."""
     top = max(stacks)
     if not all(r.nonfinite_fraction == 0 for r in runs):
         return Unbiasedness(top, False, 0.0, 0.0, alpha, 0.0, [],
@@ -59,17 +70,13 @@ def unbiasedness(stacks: dict, reference, runs: list[RunStats], alpha: float,
     pooled = statistics.Moments.pooled({spp: x[..., :3] for spp, x in stacks.items()})
     ref = reference.moments()
     c = statistics.compare(pooled, ref, alpha)
-    events, n, carried = tails.tail_events(stacks.values(), reference.mean, stacks.keys())
+    events, n, carried = tail
     samples = int(sum(spp * x.shape[0] for spp, x in stacks.items()))
     d = checks.bias_outcome(c, events, n, samples, carried, reference_events)
     if d.outcome == "fail" and fresh is not None:
-        def decide(comparison, renders):
-            ev, k, carry = tails.tail_events([renders], reference.mean)
-            return checks.bias_outcome(comparison, ev, k, top * k, carry, reference_events)
-
         y = fresh()[..., :3]
         replicated, pixels, _, excused = statistics.replicated_rejection(
-            c, d, y, ref, alpha, decide)
+            c, d, y, ref, alpha, decider(reference.mean, top, reference_events))
         k = y.shape[0]
         if not replicated:
             d.outcome = "inconclusive"

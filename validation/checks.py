@@ -153,20 +153,18 @@ def bias_outcome(c, events: np.ndarray, renders: int, samples: int,
     up_counted = int((up & ~ref_tail).sum())
     n_up, n_down = int(up.sum()), int(down.sum())
     pooled = np.asarray(c.pooled_p) < c.alpha_pooled
-    pooled_up = bool((pooled & (np.asarray(c.pooled_t) > 0)).any())
+    high = pooled & (np.asarray(c.pooled_t) > 0)            # per channel
     low = pooled & (np.asarray(c.pooled_t) < 0)
     total = int(events.sum())
     heavy = total > 0
-    carry = tail_can_carry(c, total, np.asarray(carried, np.float64))
-    pooled_down, pooled_counted = bool(low.any()), bool((low & ~carry).any())
-
+    low_counted = low & ~tail_can_carry(c, total, np.asarray(carried, np.float64))
+    pooled_up, pooled_down = bool(high.any()), bool(low.any())
+    pooled_counted = bool(low_counted.any())
     pixels = (up & ~ref_tail) | (down if not heavy else np.zeros_like(down))
-    up_ch = pooled & (np.asarray(c.pooled_t) > 0)
-    pooled_counted_ch = up_ch | (low & ~carry)
 
     def decide(outcome, reason, needed=None):
         return Decision(outcome, reason, n_up, n_down, needed, total, pixels,
-                        pooled_counted_ch, bool(up_counted or up_ch.any()))
+                        high | low_counted, bool(up_counted or pooled_up))
 
     if not (pooled.any() or rejected.any()):
         return decide("pass", "no rejection")

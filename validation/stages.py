@@ -145,18 +145,19 @@ def measure(ctx) -> None:
     (fireflies in an estimator's renders, or in path's for the reference); a
     rejection that counts is tested again on K fresh renders at the top rung."""
     ladder, ref = ctx.plan.ladder, ctx.reference
-    events = {name: tails.tail_events([ctx.units[spp][name].images for spp in ladder],
-                                      ref.mean)[0] for name in ctx.integrators}
-    path_events = events.get(REFERENCE)             # path's renders: the reference's tail
+    stacks = {name: {spp: ctx.units[spp][name].images for spp in ladder}
+              for name in ctx.integrators}
+    tail = {name: tails.tail_events(s.values(), ref.mean, s.keys())
+            for name, s in stacks.items()}
+    path_events = tail[REFERENCE][0] if REFERENCE in tail else None   # the reference's tail
     for name in ctx.integrators:
         runs = [analysis.run_stats(ctx.units[spp][name], ref) for spp in ladder]
-        stacks = {spp: ctx.units[spp][name].images for spp in ladder}
         ctx.measured[name] = EstimatorResult(
             name, ctx.params, ctx.compile_seconds.get(name, float("nan")), runs,
-            analysis.unbiasedness(stacks, ref, runs, ALPHA, path_events,
+            analysis.unbiasedness(stacks[name], ref, runs, ALPHA, tail[name], path_events,
                                   lambda name=name: _fresh(ctx, name, ladder[-1],
                                                            ctx.plan.renders)),
-            analysis.convergence(runs, heavy=bool(events[name].any())))
+            analysis.convergence(runs, heavy=bool(tail[name][0].any())))
 
 
 def judge_scene(ctx) -> None:
@@ -254,14 +255,9 @@ def _replicated_test(ctx, name: str, x: np.ndarray) -> BatchTest:
     units = ctx.units[ctx.plan.spp]
     path_events = (tails.tail_events([units[REFERENCE].images], ref)[0]
                    if REFERENCE in units else None)
-
-    def decide(comparison, renders):
-        events, n, carried = tails.tail_events([renders], ref)
-        return checks.bias_outcome(comparison, events, n, ctx.plan.spp * n, carried,
-                                   path_events)
-
-    return statistics.replicated_compare(x[..., :3], ctx.reference.moments(),
-                                         lambda: _fresh(ctx, name)[..., :3], ALPHA, decide)
+    return statistics.replicated_compare(
+        x[..., :3], ctx.reference.moments(), lambda: _fresh(ctx, name)[..., :3], ALPHA,
+        analysis.decider(ref, ctx.plan.spp, path_events))
 
 
 def split_sun(ctx) -> None:
