@@ -350,7 +350,8 @@ def describe(v: str, n) -> str:
                      f"({s.sun['solid_angle']:.2g} sr, {100 * s.sun_share_of_image:.0f} % of "
                      "path's image) is expected "
                      + (f"{hits:.2g} direct hits per pixel in all {n.samples_per_pixel} samples"
-                        if hits is not None else "to be found only through the BSDF lobe"))
+                        if hits is not None else
+                        "to be hit an unknown number of times (its facts give no largest pdf)"))
     elif v == NOT_REPLICATED:
         text += (f"; {t.reason}; no rejection replicated in {n.seeds} fresh renders "
                  f"({t.rejected_pixels} px rejected, pooled p = {min(t.pooled_p):.3g})")
