@@ -5,7 +5,10 @@ below. :func:`resolve` turns a name, or the path of any EXR file, into the
 path of a checked float32 EXR that obeys the loading policy of :mod:`.safety`:
 clean files are used in place; files that need sanitising, and generated
 maps, are written once to the cache (``mcillum.files.cache_dir("envmaps")``)
-under a content hash.
+under a hash of what makes them (:func:`cached`): the generator and its
+parameters, or the source file and the policy, and always the code that makes
+the map, so that a changed generator or sanitiser (or another mcillum or
+Mitsuba) never serves a map the old code made.
 
 :func:`generate` checks each generator parameter against the generator's
 signature before running it, and names the one that is wrong.
@@ -18,6 +21,8 @@ import inspect
 import json
 import os
 from dataclasses import dataclass, field
+from functools import lru_cache
+from importlib import metadata
 from typing import Callable
 
 import numpy as np
@@ -147,8 +152,32 @@ def generate(name: str, **params) -> np.ndarray:
 
 # ---------------------------------- Files ---------------------------------------
 
-def cached(key: dict, make: Callable[[], np.ndarray]) -> str:
-    """Path of the cached map for ``key``, made with ``make()`` if absent."""
+@lru_cache(maxsize=None)
+def code_hash(*code) -> str:
+    """sha256 of the source of ``code`` (functions) and of the modules they
+    live in, and of the installed mcillum and Mitsuba versions (sun_sky bakes
+    Mitsuba's own sky model); computed once per process."""
+    h = hashlib.sha256()
+    for dist in ("mcillum", "mitsuba"):
+        try:
+            h.update(f"{dist} {metadata.version(dist)}\n".encode())
+        except metadata.PackageNotFoundError:   # a checkout that is not installed
+            h.update(f"{dist} ?\n".encode())
+    parts = [p for f in code for p in (f, inspect.getmodule(f))]
+    for part in dict.fromkeys(parts):             # each module once
+        h.update(inspect.getsource(part).encode())
+    return h.hexdigest()
+
+
+def cached(key: dict, make: Callable[[], np.ndarray], code=()) -> str:
+    """Path of the cached map for ``key``, made with ``make()`` if absent.
+
+    The file name hashes ``key`` and :func:`code_hash` of ``code``, the
+    functions whose source decides the map (their modules count too): edit
+    them, or upgrade mcillum or Mitsuba, and the next call makes the map anew
+    instead of returning the file the old code wrote.
+    """
+    key = {**key, "code": code_hash(*code)}
     digest = hashlib.sha256(json.dumps(key, sort_keys=True, default=str).encode()).hexdigest()
     directory = files.cache_dir("envmaps")
     os.makedirs(directory, exist_ok=True)
@@ -191,9 +220,10 @@ def resolve(name_or_path: str | os.PathLike, policy: str = safety.DEFAULT_POLICY
     (None for generated maps, which are clean by construction)."""
     text = os.fspath(name_or_path)
     if text in PROCEDURAL:
-        checked = check_parameters(text, params)
-        key = {"name": text, "params": checked, "version": 1}
-        return cached(key, lambda: generate(text, **checked)), None
+        entry, checked = PROCEDURAL[text], check_parameters(text, params)
+        key = {"name": text, "params": {**entry.fixed, **checked}}
+        return cached(key, lambda: generate(text, **checked),
+                      (entry.make, procedural.bake)), None
     path = _source(text, params)
     rgb, report = safety.load(path, policy)
     if report.clean:
@@ -201,4 +231,4 @@ def resolve(name_or_path: str | os.PathLike, policy: str = safety.DEFAULT_POLICY
     st = os.stat(path)
     key = {"name": os.path.splitext(os.path.basename(path))[0], "source": os.path.abspath(path),
            "size": st.st_size, "mtime": st.st_mtime, "policy": policy}
-    return cached(key, lambda: rgb), report
+    return cached(key, lambda: rgb, (safety.sanitise,)), report

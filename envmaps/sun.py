@@ -66,6 +66,6 @@ def without_sun(path: str | os.PathLike, factor: float = SUN_FACTOR) -> tuple[st
     sunless, facts = split(rgb, factor)
     st = os.stat(path)
     key = {"name": "sunless", "source": os.path.abspath(path), "size": st.st_size,
-           "mtime": st.st_mtime, "factor": factor, "version": 1}
-    return catalog.cached(key, lambda: sunless), facts
+           "mtime": st.st_mtime, "factor": factor}
+    return catalog.cached(key, lambda: sunless, (split, safety.sanitise)), facts
 
