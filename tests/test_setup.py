@@ -24,17 +24,34 @@ def run_python(code: str, **env_overrides) -> subprocess.CompletedProcess:
                           capture_output=True, text=True, timeout=300)
 
 
-needs_bundled = pytest.mark.skipif(_llvm.bundled_libllvm() is None,
-                                   reason="karellen-llvm-core is not installed")
+#: karellen-llvm-core, the bundled libLLVM, is a dependency on Linux only
+#: (pyproject.toml: ``sys_platform == 'linux'``); elsewhere it has no wheel.
+linux = pytest.mark.skipif(sys.platform != "linux",
+                           reason="karellen-llvm-core is a dependency on Linux only")
 
 
-@needs_bundled
+def bundled() -> str:
+    """The bundled libLLVM; on Linux its absence is an installation error."""
+    path = _llvm.bundled_libllvm()
+    assert path is not None, (
+        "karellen-llvm-core, a dependency of mcillum on Linux, is not installed (or has "
+        "no libLLVM.so.*), so the llvm_* variants get whatever libLLVM the system has "
+        "(Debian's 15/16 crash Dr.Jit): pip install 'karellen-llvm-core==19.1.7', or "
+        "reinstall mcillum with its dependencies (pip install -e '.[test]')")
+    return path
+
+
+@linux
+def test_bundled_libllvm_is_installed():
+    assert os.path.isfile(bundled())
+
+
+@linux
 def test_import_mcillum_gives_working_llvm():
-    result = run_python("""
+    result = run_python(f"""
         import os, mcillum
         import drjit as dr, mitsuba as mi
-        from mcillum.integrators import _llvm
-        assert os.environ["DRJIT_LIBLLVM_PATH"] == _llvm.bundled_libllvm()
+        assert os.environ["DRJIT_LIBLLVM_PATH"] == {bundled()!r}
         assert dr.detail.llvm_version()[0] >= 17, dr.detail.llvm_version()
         mi.set_variant("llvm_ad_rgb")
         x = mi.Float([1.0, 3.0])
@@ -44,14 +61,44 @@ def test_import_mcillum_gives_working_llvm():
     assert "[1, 2]" in result.stdout
 
 
-@needs_bundled
-def test_user_setting_is_respected():
-    path = _llvm.bundled_libllvm()
+def users_libllvm(tmp_path) -> str:
+    """A working libLLVM at a path of the user's own, not the bundled one: a
+    hard link to the bundled file (or a copy across file systems), so that
+    /proc/self/maps names this path once it is loaded. Its folder holds the
+    bundled file's sibling folders (symlinks), where the wheel's RUNPATH
+    ($ORIGIN/../lib/x86_64-unknown-linux-gnu) finds libc++."""
+    source = bundled()
+    lib = tmp_path / "lib"
+    lib.mkdir()
+    mine = lib / "libLLVM.so"
+    try:
+        os.link(source, mine)
+    except OSError:
+        shutil.copy(source, mine)
+    for entry in os.scandir(os.path.dirname(source)):
+        if entry.is_dir():
+            (lib / entry.name).symlink_to(entry.path)
+    return str(mine)
+
+
+@linux
+def test_user_setting_is_respected(tmp_path):
+    """mcillum leaves a DRJIT_LIBLLVM_PATH the user set as it is (here another
+    path than the bundled one), and Dr.Jit loads that file."""
+    mine = users_libllvm(tmp_path)
+    assert mine != bundled()
     result = run_python("""
         import os, mcillum
         print(os.environ["DRJIT_LIBLLVM_PATH"])
-        """, DRJIT_LIBLLVM_PATH=path + "")
-    assert result.returncode == 0 and result.stdout.strip() == path
+        import drjit as dr
+        print(dr.detail.llvm_version()[0])
+        print(sorted({line.split()[-1] for line in open("/proc/self/maps")
+                      if "libLLVM" in line}))
+        """, DRJIT_LIBLLVM_PATH=mine)
+    assert result.returncode == 0, result.stderr
+    setting, major, loaded = result.stdout.strip().splitlines()[-3:]
+    assert setting == mine, f"mcillum replaced the user's {mine} with {setting}"
+    assert int(major) >= _llvm.MIN_LLVM_MAJOR and loaded == str([mine]), result.stdout
 
 
 IMPORT_DRJIT_FIRST = """
@@ -78,7 +125,7 @@ def test_drjit_imported_first_with_crashing_llvm_fails_clearly():
     message = result.stdout
     assert "Dr.Jit loaded LLVM 1" in message and "crashes" in message
     assert "import mcillum first" in message
-    assert f"DRJIT_LIBLLVM_PATH={_llvm.bundled_libllvm()}" in message
+    assert f"DRJIT_LIBLLVM_PATH={bundled()}" in message
 
 
 def test_drjit_imported_first_without_llvm_fails_clearly():
