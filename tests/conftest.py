@@ -1,20 +1,22 @@
 """Shared fixtures: variants, scene paths, the estimators under test (read from
-the registry), batches of independent renders, and broken twins."""
+the registry) and batches of independent renders. The broken twins live in
+twins.py."""
 
 from __future__ import annotations
 
-import importlib
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 import mcillum  # noqa: F401  (LLVM set-up before drjit; registers the plugins)
-import drjit as dr
 import mitsuba as mi
 
 from mcillum.integrators import registry
 from mcillum.validation import renders
+
+from twins import (clamped_class, has_pdf_pair, path_at_depth_class,  # noqa: F401
+                   plugin_class, wrong_pdf_class, wrong_pdf_integrator)
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENES = ROOT / "scenes"
@@ -25,15 +27,6 @@ VARIANTS = ["scalar_rgb", "llvm_ad_rgb"]
 renders.set_variant("llvm_ad_rgb")      # the registry fills when a variant is set
 
 
-def _base():
-    return importlib.import_module("mcillum.integrators.estimator").IlluminationEstimator
-
-
-def plugin_class(name: str):
-    """The plugin class of registered estimator ``name`` (current variant)."""
-    return type(mi.load_dict({"type": name}))
-
-
 def estimators() -> list[str]:
     """Every registered mcillum estimator (registry order)."""
     return registry.names()
@@ -42,7 +35,7 @@ def estimators() -> list[str]:
 def hemisphere_estimators() -> list[str]:
     """Estimators defined by a pure direction pair ``sample_local`` /
     ``pdf_local`` on the hemisphere (they get a wrong-pdf twin)."""
-    return [n for n in estimators() if plugin_class(n).pdf_local is not _base().pdf_local]
+    return [n for n in estimators() if has_pdf_pair(plugin_class(n))]
 
 
 #: Fixed at collection time (parametrize needs lists).
@@ -54,6 +47,14 @@ HEMISPHERE = hemisphere_estimators()
 def variant(request):
     """Switch Mitsuba to each test variant in turn."""
     return renders.set_variant(request.param)
+
+
+@pytest.fixture
+def use_variant():
+    """``renders.set_variant`` for a test parametrised by variant name; llvm
+    is restored afterwards."""
+    yield renders.set_variant
+    renders.set_variant("llvm_ad_rgb")
 
 
 @pytest.fixture
@@ -93,71 +94,3 @@ def batch(scene, integrator, spp: int, k: int, first_seed: int = 0) -> np.ndarra
     """K independent renders (seeds first_seed … first_seed+k-1), (K, H, W, C)."""
     return np.stack([renders.render(scene, integrator, spp, seed).image
                      for seed in range(first_seed, first_seed + k)])
-
-
-def wrong_pdf_class(base: str = "cosine_hemisphere", factor: float = 1.05):
-    """A deliberately biased estimator: ``base`` with its pdf scaled by
-    ``factor`` (the class binds to the current variant)."""
-    cls = plugin_class(base)
-    pdf = cls.pdf_local
-
-    class WrongPdf(cls):
-        plugin_name = f"{base}_pdf_x{factor}"
-        pdf_local = staticmethod(lambda w: factor * pdf(w))
-
-    return WrongPdf
-
-
-def wrong_pdf_integrator(base: str = "cosine_hemisphere", factor: float = 1.05,
-                         props: "mi.Properties | None" = None):
-    """An instance of :func:`wrong_pdf_class`."""
-    return wrong_pdf_class(base, factor)(props or mi.Properties())
-
-
-def clamped_class(reference: np.ndarray, base: str = "cosine_hemisphere",
-                  factor: float = 10.0):
-    """A deliberately biased estimator: ``base`` with every sample's radiance
-    clamped per channel at ``factor`` × the ``reference`` (H, W, 3) at its
-    pixel (the firefly clamp renderers offer, and users forget is a bias).
-    The pixel of a camera ray is where the sensor sees a point on it
-    (``Sensor.sample_direction`` gives film coordinates)."""
-    cls = plugin_class(base)
-    h, w = reference.shape[:2]
-    limit = (factor * np.asarray(reference[..., :3], np.float32)).reshape(-1)
-
-    class Clamped(cls):
-        plugin_name = f"{base}_clamped_{factor:g}x"
-
-        def sample(self, scene, sampler, ray, medium=None, active=True):
-            L, valid, aovs = super().sample(scene, sampler, ray, medium, active)
-            it = dr.zeros(mi.Interaction3f)
-            it.p = ray.o + ray.d
-            ds, _ = scene.sensors()[0].sample_direction(it, mi.Point2f(0.5), active)
-            x = mi.UInt32(dr.clip(dr.floor(ds.uv.x), 0, w - 1))
-            y = mi.UInt32(dr.clip(dr.floor(ds.uv.y), 0, h - 1))
-            i = 3 * (y * w + x)
-            cap = mi.Color3f(*(dr.gather(mi.Float, mi.Float(limit), i + c) for c in range(3)))
-            return dr.minimum(L, cap), valid, aovs
-
-    return Clamped
-
-
-def path_at_depth_class(depth: int = 2):
-    """A deliberately biased reference: Mitsuba's ``path`` at ``max_depth``
-    ``depth`` whatever the validation asks for (it reads and ignores the
-    max_depth it is given)."""
-
-    class PathAtDepth(mi.SamplingIntegrator):
-        plugin_name = f"path_max_depth_{depth}"
-        display_name, colour, reachable, listing_order = plugin_name, None, frozenset(), 400
-        max_direction_pdf = None
-
-        def __init__(self, props):
-            super().__init__(props)
-            props.get("max_depth", -1)         # (the validation's: ignored on purpose)
-            self.inner = mi.load_dict({"type": "path", "max_depth": depth})
-
-        def sample(self, scene, sampler, ray, medium=None, active=True):
-            return self.inner.sample(scene, sampler, ray, medium, active)
-
-    return PathAtDepth
