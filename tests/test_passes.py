@@ -9,6 +9,7 @@ lowered, and once for real (marked slow: about 70 s per integrator here).
 
 import numpy as np
 import pytest
+from scipy import stats
 
 import mitsuba as mi
 
@@ -63,19 +64,20 @@ def _env_scene(res=2):
 
 # (the split is one method of the shared base class: one hemisphere
 # estimator, the NEE one, and Mitsuba's path through renders.render)
-@pytest.mark.parametrize("name", ["cosine_hemisphere", "mis", "path"])
-def test_split_render_matches_the_unsplit_one(llvm, name, monkeypatch):
-    """Image means of 48 seeds, split (7 passes) against unsplit, on the
-    furnace sphere: two-sample Welch test per channel, α = 0.001, Šidák over
-    the 3 channels. A render whose later passes replayed the first or were
-    weighted wrongly (e.g. summed) fails it."""
+SPLIT = ("cosine_hemisphere", "mis", "path")
+ALPHA = 0.001
+
+
+def split_and_whole(name, monkeypatch, first_seed=0):
+    """Image means of 48 seeds on the furnace sphere (8² px, 64 spp), unsplit
+    and split into 7 passes by lowering the wavefront limit to 640 lanes."""
     scene = renders.load_scene(SCENES / "furnace_sphere.xml", res=8)
     integrator = renders.make_integrator(name, {"max_depth": 2})
     k, spp = 48, 64
 
     def means():
         return np.stack([renders.render(scene, integrator, spp, s).image.mean(axis=(0, 1))
-                         for s in range(k)])
+                         for s in range(first_seed, first_seed + k)])
 
     whole = means()
     calls = []
@@ -89,9 +91,54 @@ def test_split_render_matches_the_unsplit_one(llvm, name, monkeypatch):
     monkeypatch.setattr(passes, "plan_passes", small_limit)
     split = means()
     assert calls and all(len(c) == 7 for c in calls)    # 64 px · 64 spp / 640
-    _, p = statistics.welch(*statistics.batch_moments(whole), *statistics.batch_moments(split))
-    alpha = 1 - (1 - 0.001) ** (1 / 3)
-    assert (p > alpha).all(), (whole.mean(0), split.mean(0), p)
+    return whole, split
+
+
+def same_distribution(whole, split):
+    """Per channel, a two-sample Welch test on the means and a two-sided F
+    test on the variances of the 48 image means; α = 0.001 over the 6 tests
+    (Šidák). Returns (agree?, p-values)."""
+    _, p_mean = statistics.welch(*statistics.batch_moments(whole),
+                                 *statistics.batch_moments(split))
+    ratio = whole.var(axis=0, ddof=1) / split.var(axis=0, ddof=1)
+    df = (len(whole) - 1, len(split) - 1)
+    p_var = 2 * np.minimum(stats.f.cdf(ratio, *df), stats.f.sf(ratio, *df))
+    p = np.concatenate([p_mean, p_var])
+    return bool((p > 1 - (1 - ALPHA) ** (1 / p.size)).all()), p
+
+
+@pytest.mark.parametrize("name", SPLIT)
+def test_split_render_matches_the_unsplit_one(llvm, name, monkeypatch):
+    """Split (7 passes) and unsplit renders have the same distribution of
+    image means: same mean and same spread (:func:`same_distribution`). The
+    twins below, passes that replay one seed (the spread grows: 9–10 spp
+    repeated instead of 64 independent) and passes summed instead of averaged
+    (the mean grows 7×), are rejected by the same test."""
+    ok, p = same_distribution(*split_and_whole(name, monkeypatch))
+    assert ok, p
+
+
+def _replayed(seed, index):
+    return seed                                        # every pass replays pass 0
+
+
+def _summed(plan, seed, render_pass):
+    image = None
+    for i, n in enumerate(plan):
+        part = render_pass(passes.pass_seed(seed, i), n)  # not weighted by n / spp
+        image = part if image is None else image + part
+    return image
+
+
+@pytest.mark.parametrize("twin", ["replayed", "summed"])
+@pytest.mark.parametrize("name", ["cosine_hemisphere", "path"])
+def test_split_render_twins_are_rejected(llvm, name, twin, monkeypatch):
+    if twin == "replayed":
+        monkeypatch.setattr(passes, "pass_seed", _replayed)
+    else:
+        monkeypatch.setattr(passes, "render_in_passes", _summed)
+    ok, p = same_distribution(*split_and_whole(name, monkeypatch))
+    assert not ok, f"{twin} passes were accepted: p = {p}"
 
 
 @pytest.mark.slow
