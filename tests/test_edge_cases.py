@@ -14,7 +14,9 @@ and non-square films, no emission, zero-area emitters (edge_light_size).
    comparisons were rejected (1.2 % against α = 1 %; at 64 spp 7.5 %, from
    heavy tails at grazing incidence); the zero-area sphere light 0 of 150;
    the non-square films 1 of 30 each. The 5 %-off cosine pdf was rejected in
-   30 of 30 sets on every scene.
+   30 of 30 sets on every scene; every estimator's weight twins
+   (tests/twins.py) are rejected by the same test (geometry scenes, the
+   zero-area light; the non-square film: the cosine pdf twin).
 3. Numerical: shapes, finiteness and non-negativity at 1 spp, 1×1 and 7×3 /
    3×7 px (and agreement with `path` on the non-square film); exact zeros
    where nothing emits; Mitsuba's own behaviour with zero-area emitters,
@@ -33,7 +35,8 @@ import mitsuba as mi
 from mcillum.validation import renders, scenes, statistics
 from mcillum.errors import SceneError
 
-from conftest import ALL_ESTIMATORS, batch, wrong_pdf_integrator
+import twins
+from conftest import ALL_ESTIMATORS, batch
 
 ALPHA = statistics.ALPHA
 INDEX = scenes.index()
@@ -156,13 +159,22 @@ def test_geometry_edge_agrees_with_path(llvm, name, estimator):
     assert result.passed, result.summary()
 
 
-@pytest.mark.parametrize("name", GEOMETRY)
-def test_geometry_edge_rejects_wrong_pdf(llvm, name):
-    """The same test and budget reject a cosine estimator whose pdf is 5 % off."""
+def _default_if_hemisphere(cases):
+    """The hemisphere estimators' cases in the default run, the others slow
+    (as the agreement tests above)."""
+    return [c if c[-2] in ("uniform_hemisphere", "cosine_hemisphere") else
+            pytest.param(*c, marks=pytest.mark.slow) for c in cases]
+
+
+@pytest.mark.parametrize("name, estimator, kind", _default_if_hemisphere(
+    [(n, e, k) for n in GEOMETRY for e, k in twins.cases(ALL_ESTIMATORS)]))
+def test_geometry_edge_rejects_broken_twins(llvm, name, estimator, kind):
+    """The same test and budget reject every estimator's weight twins (a pdf,
+    BSDF-sample or emitter-sample weight 5 % off)."""
     scene = load(name, res=RES)
-    est = batch(scene, wrong_pdf_integrator("cosine_hemisphere"), SPP, K)
+    est = batch(scene, twins.integrator(kind, estimator), SPP, K)
     result = statistics.compare(est, reference(name), ALPHA)
-    assert not result.passed, "pdf x1.05 was accepted: " + result.summary()
+    assert not result.passed, f"{twins.TWINS[kind].bug} was accepted: " + result.summary()
 
 
 @pytest.mark.parametrize("estimator", ALL_ESTIMATORS)
@@ -175,6 +187,14 @@ def test_zero_area_sphere_light_agrees_with_path(llvm, estimator):
     est = batch(scene, renders.make_integrator(estimator), SPP, K)
     result = statistics.compare(est, reference("edge_light_size", key), ALPHA)
     assert result.passed, result.summary()
+
+
+@pytest.mark.parametrize("estimator, kind", twins.cases(ALL_ESTIMATORS))
+def test_zero_area_sphere_light_rejects_broken_twins(llvm, estimator, kind):
+    scene = load("edge_light_size", res=RES, radius=0)
+    est = batch(scene, twins.integrator(kind, estimator), SPP, K)
+    result = statistics.compare(est, reference("edge_light_size", _key({"radius": 0})), ALPHA)
+    assert not result.passed, f"{twins.TWINS[kind].bug} was accepted: " + result.summary()
 
 
 # ---------------------------- 3. Numerical cases ----------------------------
@@ -230,6 +250,9 @@ def test_non_square_film_agrees_with_path(llvm, width, height):
                 first_seed=REFERENCE_SEED)
     result = statistics.compare(est, ref, ALPHA)
     assert result.passed, result.summary()
+    twin = batch(scene, twins.integrator("pdf_high", "cosine_hemisphere"), SPP, K)
+    result = statistics.compare(twin, ref, ALPHA)
+    assert not result.passed, "pdf 5 % high was accepted: " + result.summary()
 
 
 ZERO_RADIANCE = [
