@@ -20,6 +20,7 @@ from mcillum.envmaps import procedural
 from mcillum.validation import cli, profiles, references, renders, results, scenes, stages
 from mcillum.validation.context import Context, Run
 
+import twins
 from conftest import wrong_pdf_integrator
 
 # A small profile for tests: the two analytic scenes, few rungs.
@@ -73,7 +74,7 @@ def test_correct_estimators_pass_and_outputs_are_complete(llvm, tiny_profile, tm
         for run in budget["estimators"].values():
             assert len(run["wall_seconds"]) == len(run["relmse_per_render"]) == 4
             assert run["relmse_ci"][0] <= run["relmse"] <= run["relmse_ci"][1]
-    assert sorted(p["rank"] for p in speed["ranking"])[0] == 1
+    assert_ranking_follows_the_intervals(speed)
     assert (out / "images" / "cap_plane" / "display" / "path.exr").is_file()
     broken = json.loads(json.dumps(data))
     broken["scenes"][1]["speed"]["cost_model"]["path"]["fixed_s_ci"] = [0.1]
@@ -90,10 +91,60 @@ def test_correct_estimators_pass_and_outputs_are_complete(llvm, tiny_profile, tm
     assert int(suite.get("tests")) == len(data["checks"]) and suite.get("failures") == "0"
 
 
+def assert_ranking_follows_the_intervals(speed):
+    """The ranking, recomputed here from the reported efficiency intervals:
+    most efficient first; rank = 1 + the number of estimators whose interval
+    lies wholly above; ties are exactly the overlapping intervals. Path's
+    ratio to itself is 1."""
+    ci = {n: r["ci"] for n, r in speed["efficiency_vs_path"].items()}
+    ratios = [speed["efficiency_vs_path"][p["estimator"]]["ratio"] for p in speed["ranking"]]
+    assert ratios == sorted(ratios, reverse=True)
+    assert speed["efficiency_vs_path"]["path"]["ratio"] == pytest.approx(1.0)
+    assert {p["estimator"] for p in speed["ranking"]} == set(ci)
+    for p in speed["ranking"]:
+        lo, hi = ci[p["estimator"]]
+        above = [o for o in ci if ci[o][0] > hi]
+        below = [o for o in ci if ci[o][1] < lo]
+        assert p["rank"] == 1 + len(above), (p, ci)
+        assert set(p["tied_with"]) == set(ci) - set(above) - set(below) - {p["estimator"]}
+
+
+def convergence_of(tmp_path, estimator):
+    code, out = run_cli(tmp_path, "--scenes", "cap_plane", "--estimators", estimator,
+                        "--no-speed")
+    return json.loads((out / "results.json").read_text())["scenes"][0]["estimators"][0][
+        "convergence"]
+
+
 def test_uniform_estimator_slope_is_monte_carlo(llvm, tiny_profile, tmp_path):
-    code, out = run_cli(tmp_path, "--scenes", "cap_plane", "--estimators", "uniform_hemisphere")
-    est = json.loads((out / "results.json").read_text())["scenes"][0]["estimators"][0]
-    assert est["convergence"]["consistent_with_mc"], est["convergence"]
+    """A fitted slope (4 rungs, 16 … 1024 spp) whose 95 % interval holds −1."""
+    c = convergence_of(tmp_path, "uniform_hemisphere")
+    assert np.isfinite([c["slope"], c["low"], c["high"]]).all(), c
+    assert c["low"] <= -1 <= c["high"] and c["consistent_with_mc"] and c["outcome"] == "pass", c
+
+
+def test_convergence_check_fails_an_error_that_stops_shrinking(llvm, tiny_profile, tmp_path):
+    """Its twin: the cosine estimator with its pdf 1.5× too high, whose
+    relMSE levels off at its bias² (measured slope −0.26 [−0.56, +0.03]).
+    (A 5 % pdf error is not resolved by the slope at this ladder: −0.95
+    [−1.11, −0.78]; the unbiasedness check catches that one.)"""
+    cls = twins.wrong_pdf_class("cosine_hemisphere", 1.5)
+    mi.register_integrator("cosine_pdf_x1.5", lambda props, cls=cls: cls(props))
+    c = convergence_of(tmp_path, "cosine_pdf_x1.5")
+    assert not c["consistent_with_mc"] and c["outcome"] == "fail", c
+
+
+def test_too_few_rungs_claim_nothing(llvm):
+    """Fewer than 3 rungs with error above the reference's: no slope, no
+    claim of Monte Carlo convergence, inconclusive."""
+    from mcillum.validation import analysis
+    runs = [results.RunStats(spp=s, renders=8, relmse=r, relmse_per_render=[r] * 8, mse=r,
+                             mape=0.1, bias=0.0, bias_se=0.01, variance_per_render=r,
+                             nonfinite_fraction=0.0, median_seconds=0.01, seconds=[0.01] * 8,
+                             samples_per_second=1e6, efficiency=1.0, reference_relmse=0.0)
+            for s, r in ((16, 0.1), (64, 0.025))]
+    c = analysis.convergence(runs)
+    assert not c.consistent_with_mc and not c.passed and c.outcome == "inconclusive", c
 
 
 def test_biased_estimator_fails_with_exit_1(llvm, tiny_profile, tmp_path, capsys):

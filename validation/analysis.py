@@ -113,7 +113,7 @@ def convergence(runs: list[RunStats], alpha: float = 0.05,
         ok = [(r.spp, r.relmse - r.reference_relmse) for r in runs
               if r.relmse - r.reference_relmse > 0]
         if len(ok) < 3:
-            c = Convergence(float("nan"), float("-inf"), float("inf"), False, True, False)
+            c = Convergence(float("nan"), float("-inf"), float("inf"), False, False, False)
         else:
             slope, _, (lo, hi) = loglog_fit(*zip(*ok), alpha)
             c = Convergence(float(slope), float(lo), float(hi), False,

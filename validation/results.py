@@ -151,7 +151,7 @@ class Convergence:
     low: float
     high: float
     exact: bool
-    consistent_with_mc: bool
+    consistent_with_mc: bool        # −1 inside a fitted interval (False: none fitted)
     passed: bool
     outcome: str = ""               # checks.convergence_outcome (minor version 3)
     message: str = ""
