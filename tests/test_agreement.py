@@ -79,9 +79,14 @@ def test_agrees_with_path(name, variant_name, case, max_depth):
 
 @pytest.mark.parametrize("name", ALL_ESTIMATORS)
 def test_agrees_with_path_hiding_emitters(llvm, name):
+    """Against path hiding emitters; the twin that ignores the setting (shows
+    the light) is rejected by the same test."""
     est, ref = stacks(llvm, "cornell_box", name, 3, params={"hide_emitters": True})
     result = statistics.compare(est, ref, ALPHA)
     assert result.passed, result.summary()
+    shown = batch(renders.load_scene(scenes.path("cornell_box"), res=CASES["cornell_box"][0][1]),
+                  renders.make_integrator(name, {"max_depth": 3}), 2048, 16)
+    assert not statistics.compare(shown, ref, ALPHA).passed, "the light shown was accepted"
 
 
 #: Scenes with content a continuous hemisphere pdf cannot reach (scene
