@@ -12,7 +12,7 @@ twin                   the bug                                               app
 ``bsdf_weight_low``    BSDF-sample weight f cos/p × 0.95 (its pdf 5 % high)  direct light from BSDF hits
 ``emitter_weight_low`` emitter-sample weight L_e/p × 0.95                    next-event estimators
 ``glossy_dropped``     the glossy lobe left out of every BSDF call           all (glossy scenes only)
-``region_dark``        radiance × 0.85 in one block of the image             all (a local error)
+``region_dark``        radiance × 0.7 in one block of the image              all (a local error)
 ``black``              renders zeros                                         all
 =====================  ====================================================  ==========================
 
@@ -124,7 +124,7 @@ def _pixel(scene, ray, active, width: int, height: int):
 REGION = (0.375, 0.625, 0.375, 0.625)
 
 
-def region_dark_class(base: str, factor: float = 0.85, region=REGION):
+def region_dark_class(base: str, factor: float = 0.7, region=REGION):
     """``base`` with its radiance scaled by ``factor`` in one block of the
     image: a local error the image mean dilutes (a quarter-by-quarter block is
     1/16 of the film), which only a per-pixel test can find."""
@@ -230,7 +230,7 @@ TWINS = {t.name: t for t in (
     Twin("emitter_weight_low", "emitter-sample weight 5 % low", lambda c: bool(c.use_nee),
          emitter_weight_class),
     Twin("glossy_dropped", "glossy lobe left out", lambda c: True, glossy_dropped_class),
-    Twin("region_dark", "15 % dark in one block of the image", lambda c: True,
+    Twin("region_dark", "30 % dark in one block of the image", lambda c: True,
          region_dark_class),
     Twin("black", "renders zeros", lambda c: True, black_class),
 )}
