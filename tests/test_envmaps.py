@@ -88,11 +88,11 @@ def test_sg_total_power():
     np.testing.assert_allclose(total, 2 * np.pi * a * (1 - np.exp(-2 * lam)) / lam, rtol=1e-3)
 
 
-def render_cap_plane(name, integrator):
+def render_cap_plane(name, integrator, first_seed=0):
     params, exact = CLOSED_FORMS[name]
     path, _ = catalog.resolve(name, **params)
     scene = renders.load_scene(scenes.path("cap_plane"), envmap=path, albedo=ALBEDO)
-    values = batch(scene, integrator, 64, 12).mean(axis=(1, 2))   # (K, 3)
+    values = batch(scene, integrator, 64, 12, first_seed).mean(axis=(1, 2))   # (K, 3)
     return values, ALBEDO * exact() / np.pi
 
 
