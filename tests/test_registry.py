@@ -15,6 +15,7 @@ from mcillum.integrators.scene_checks import KINDS
 from mcillum.validation import charts, pipeline, profiles, results, scenes, stages
 
 import conftest
+import twins
 
 
 def test_every_estimator_declares_its_facts(llvm):
@@ -81,6 +82,10 @@ def test_a_new_estimator_appears_everywhere_without_other_edits(throwaway):
     # tests: the lists they parametrise over
     assert throwaway in conftest.estimators()
     assert throwaway in conftest.hemisphere_estimators()
+    # broken twins: those its strategy admits, and they build and load
+    assert twins.cases([throwaway], tuple(twins.TWINS)) == [
+        (throwaway, k) for k in ("pdf_high", "glossy_dropped", "region_dark", "black")]
+    assert twins.integrator("pdf_high", throwaway).pdf_local(mi.Vector3f(0, 0, 1)) > 0
     # scenes: it renders the point light (it reaches delta lights), unlike
     # the estimator it derives from
     contains = scenes.index()["point_light"].contains
