@@ -21,8 +21,6 @@ import inspect
 import json
 import os
 from dataclasses import dataclass, field
-from functools import lru_cache
-from importlib import metadata
 from typing import Callable
 
 import numpy as np
@@ -152,32 +150,15 @@ def generate(name: str, **params) -> np.ndarray:
 
 # ---------------------------------- Files ---------------------------------------
 
-@lru_cache(maxsize=None)
-def code_hash(*code) -> str:
-    """sha256 of the source of ``code`` (functions) and of the modules they
-    live in, and of the installed mcillum and Mitsuba versions (sun_sky bakes
-    Mitsuba's own sky model); computed once per process."""
-    h = hashlib.sha256()
-    for dist in ("mcillum", "mitsuba"):
-        try:
-            h.update(f"{dist} {metadata.version(dist)}\n".encode())
-        except metadata.PackageNotFoundError:   # a checkout that is not installed
-            h.update(f"{dist} ?\n".encode())
-    parts = [p for f in code for p in (f, inspect.getmodule(f))]
-    for part in dict.fromkeys(parts):             # each module once
-        h.update(inspect.getsource(part).encode())
-    return h.hexdigest()
-
-
 def cached(key: dict, make: Callable[[], np.ndarray], code=()) -> str:
     """Path of the cached map for ``key``, made with ``make()`` if absent.
 
-    The file name hashes ``key`` and :func:`code_hash` of ``code``, the
+    The file name hashes ``key`` and ``files.code_hash`` of ``code``, the
     functions whose source decides the map (their modules count too): edit
     them, or upgrade mcillum or Mitsuba, and the next call makes the map anew
     instead of returning the file the old code wrote.
     """
-    key = {**key, "code": code_hash(*code)}
+    key = {**key, "code": files.code_hash(*code)}
     digest = hashlib.sha256(json.dumps(key, sort_keys=True, default=str).encode()).hexdigest()
     directory = files.cache_dir("envmaps")
     os.makedirs(directory, exist_ok=True)

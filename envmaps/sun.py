@@ -67,5 +67,6 @@ def without_sun(path: str | os.PathLike, factor: float = SUN_FACTOR) -> tuple[st
     st = os.stat(path)
     key = {"name": "sunless", "source": os.path.abspath(path), "size": st.st_size,
            "mtime": st.st_mtime, "factor": factor}
-    return catalog.cached(key, lambda: sunless, (split, safety.sanitise)), facts
+    return catalog.cached(key, lambda: sunless,
+                          (split, procedural.cell_solid_angles, safety.sanitise)), facts
 

@@ -17,10 +17,14 @@ Nothing here imports Mitsuba or Dr.Jit.
 
 from __future__ import annotations
 
+import hashlib
+import inspect
 import os
 import socket
 import tempfile
 from contextlib import contextmanager
+from functools import lru_cache
+from importlib import metadata
 
 import numpy as np
 
@@ -39,6 +43,32 @@ def cache_dir(*parts: str) -> str:
     root = os.environ.get("MCILLUM_CACHE") or os.path.join(
         os.path.expanduser("~"), ".cache", "mcillum")
     return os.path.join(root, *parts)
+
+
+@lru_cache(maxsize=None)
+def code_hash(*code) -> str:
+    """sha256 of the source of ``code`` (functions or modules) and of the
+    modules they live in, and of the installed mcillum and Mitsuba versions:
+    the part of a cache key that says which code filled the cache (an edit or
+    an upgrade makes a new key). Computed once per process."""
+    h = hashlib.sha256()
+    for dist in ("mcillum", "mitsuba"):
+        try:
+            h.update(f"{dist} {metadata.version(dist)}\n".encode())
+        except metadata.PackageNotFoundError:   # a checkout that is not installed
+            h.update(f"{dist} ?\n".encode())
+    parts = [p for f in code for p in (f, inspect.getmodule(f))]
+    for part in dict.fromkeys(parts):             # each module once
+        try:
+            h.update(inspect.getsource(part).encode())
+        except (OSError, TypeError):              # installed without sources: bytecode
+            compiled = getattr(part, "__code__", None)
+            if compiled is not None:
+                h.update(compiled.co_code + repr(compiled.co_consts).encode())
+            else:
+                with open(part.__file__, "rb") as f:
+                    h.update(f.read())
+    return h.hexdigest()
 
 
 # ------------------------------ Atomic writes ---------------------------------

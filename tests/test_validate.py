@@ -92,17 +92,25 @@ def test_correct_estimators_pass_and_outputs_are_complete(llvm, tiny_profile, tm
 
 
 def assert_ranking_follows_the_intervals(speed):
-    """The ranking, recomputed here from the reported efficiency intervals:
+    """The ranking, recomputed here from the efficiency intervals it reports:
     most efficient first; rank = 1 + the number of estimators whose interval
-    lies wholly above; ties are exactly the overlapping intervals. Path's
-    ratio to itself is 1."""
-    ci = {n: r["ci"] for n, r in speed["efficiency_vs_path"].items()}
-    ratios = [speed["efficiency_vs_path"][p["estimator"]]["ratio"] for p in speed["ranking"]]
-    assert ratios == sorted(ratios, reverse=True)
+    lies wholly above; ties are exactly the overlapping intervals. Each
+    efficiency is 1/(relMSE·t) of the largest budget's renders (mean relMSE,
+    mean wall time: the definition, computed here), inside its interval;
+    path's ratio to itself is 1."""
+    ranking = speed["ranking"]
+    ci = {p["estimator"]: p["ci"] for p in ranking}
+    assert [p["efficiency"] for p in ranking] == sorted((p["efficiency"] for p in ranking),
+                                                        reverse=True)
+    assert set(ci) == set(speed["efficiency_vs_path"])
     assert speed["efficiency_vs_path"]["path"]["ratio"] == pytest.approx(1.0)
-    assert {p["estimator"] for p in speed["ranking"]} == set(ci)
-    for p in speed["ranking"]:
+    top = speed["budgets"][-1]["estimators"]
+    for p in ranking:
+        run = top[p["estimator"]]
+        mine = 1 / (np.mean(run["relmse_per_render"]) * np.mean(run["wall_seconds"]))
+        assert p["efficiency"] == pytest.approx(mine, rel=1e-6), (p, mine)
         lo, hi = ci[p["estimator"]]
+        assert lo <= p["efficiency"] <= hi
         above = [o for o in ci if ci[o][0] > hi]
         below = [o for o in ci if ci[o][1] < lo]
         assert p["rank"] == 1 + len(above), (p, ci)
@@ -247,6 +255,29 @@ def test_reference_key_changes_with_everything_that_changes_the_image(llvm, tmp_
     k1 = references.cache_key(sky, {"envmap": str(env)}, {}, "llvm_ad_rgb")
     files.write_exr(env, procedural.constant(2.0))
     assert k1 != references.cache_key(sky, {"envmap": str(env)}, {}, "llvm_ad_rgb")
+
+
+def test_reference_key_changes_with_the_code_that_fills_it(llvm, monkeypatch):
+    """An edit to mcillum's Phong BSDF (which scenes may use) or to the
+    reference code gives a new key: a stale reference is never served."""
+    import inspect
+
+    from mcillum.integrators import phong
+    path = scenes.path("furnace_sphere")
+    defines = renders.resolve_defines(path, res=4)
+
+    def key():
+        files.code_hash.cache_clear()
+        return references.cache_key(path, defines, {"max_depth": 2}, "llvm_ad_rgb")
+
+    base = key()
+    source = inspect.getsource
+    for module in (phong, references):
+        monkeypatch.setattr(inspect, "getsource", lambda obj, m=module: source(obj) + (
+            "\n# edited" if obj is m else ""))
+        assert key() != base, module.__name__
+        monkeypatch.setattr(inspect, "getsource", source)
+    assert key() == base
 
 
 def test_capped_reference_is_not_chased_again_by_a_rerun(llvm, tmp_path):

@@ -149,7 +149,8 @@ def ranking(intervals: dict[str, tuple[float, Interval]]) -> list[Placement]:
 
     names = sorted(intervals, key=lambda n: -intervals[n][0])
     return [Placement(n, 1 + sum(beats(o, n) for o in names),
-                      [o for o in names if o != n and not beats(o, n) and not beats(n, o)])
+                      [o for o in names if o != n and not beats(o, n) and not beats(n, o)],
+                      intervals[n][0], intervals[n][1])
             for n in names]
 
 

@@ -111,6 +111,16 @@ def referenced_files(scene_path: str, defines: dict) -> list[str]:
     return seen
 
 
+def _filled_by():
+    """The modules whose code decides a cached reference: this one (passes,
+    precision), the renderer, the pass splitter, and mcillum's own BSDF,
+    which scenes may use (Mitsuba's code is keyed by its version)."""
+    import sys
+
+    from ..integrators import passes, phong
+    return (sys.modules[__name__], renders, passes, phong)
+
+
 def cache_key(scene_path: str, defines: dict, params: dict, variant: str) -> str:
     h = hashlib.sha256()
     for path in referenced_files(scene_path, defines):
@@ -119,7 +129,8 @@ def cache_key(scene_path: str, defines: dict, params: dict, variant: str) -> str
             h.update(hashlib.sha256(f.read()).digest())
     desc = {"defines": {k: v for k, v in defines.items() if k != "envmap"},
             "params": params, "variant": variant, "mitsuba": mi.__version__,
-            "drjit": dr.__version__, "integrator": "path", "format": FORMAT_VERSION}
+            "drjit": dr.__version__, "integrator": "path", "format": FORMAT_VERSION,
+            "code": files.code_hash(*_filled_by())}
     if seeds.seed_set():                  # another independent repeat (seeds.py)
         desc["seed_set"] = seeds.seed_set()
     h.update(json.dumps(desc, sort_keys=True, default=str).encode())

@@ -41,7 +41,9 @@ VERSION = 1
 #: resolution); the small-image ``equal_time`` is no longer written.
 #: 3: three outcomes (checks.py): ``outcome`` on every check, unbiasedness,
 #: convergence and failure-case test; ``seed_set``.
-MINOR_VERSION = 3
+#: 4: each ranking place holds the efficiency and interval it was ranked by;
+#: ``consistent_with_mc`` is false where no slope was fitted.
+MINOR_VERSION = 4
 SCHEMA_FILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results.schema.json")
 
 DEFINITIONS = {
@@ -151,7 +153,7 @@ class Convergence:
     low: float
     high: float
     exact: bool
-    consistent_with_mc: bool        # −1 inside a fitted interval (False: none fitted)
+    consistent_with_mc: bool        # −1 inside the fitted interval (exact: true; none fitted: false)
     passed: bool
     outcome: str = ""               # checks.convergence_outcome (minor version 3)
     message: str = ""
@@ -243,6 +245,8 @@ class Placement:
     estimator: str
     rank: int
     tied_with: list[str]
+    efficiency: float | None = _optional()     # 1/(relMSE·t), what it was ranked by
+    ci: Interval | None = _optional()          # (minor version 4)
 
 
 @dataclass
