@@ -23,6 +23,8 @@ Cornell box (2² px, looking through the light) resolves only gross errors
 (max_depth 2 against 1) and claims nothing finer.
 """
 
+import functools
+
 import numpy as np
 import pytest
 
@@ -52,14 +54,27 @@ def stacks(variant, case, integrator, max_depth, reference_depth=None, params=No
     res, spp, k = small(variant, *res), small(variant, *spp), small(variant, *k)
     if variant.startswith("scalar"):
         params = {**scalar_params, **(params or {})}
-    scene = renders.load_scene(scenes.path(case), res=res)
     params = {"max_depth": max_depth, **(params or {})}
     if isinstance(integrator, str):
         integrator = renders.make_integrator(integrator, params)
-    reference = renders.make_integrator(
-        "path", {**params, "max_depth": reference_depth or max_depth})
-    return (batch(scene, integrator, spp, k, first_seed=first_seed),
-            batch(scene, reference, spp, k, first_seed=REFERENCE_SEED + first_seed))
+    ref = reference(variant, case, tuple(sorted(
+        {**params, "max_depth": reference_depth or max_depth}.items())), first_seed)
+    return batch(_scene(variant, case, res), integrator, spp, k, first_seed=first_seed), ref
+
+
+@functools.lru_cache(maxsize=None)
+def _scene(variant, case, res):
+    return renders.load_scene(scenes.path(case), res=res)
+
+
+@functools.lru_cache(maxsize=None)
+def reference(variant, case, params: tuple, first_seed=0):
+    """K renders of `path` (seeds REFERENCE_SEED + first_seed …), rendered
+    once per module run and shared by the estimators and their twins."""
+    res, spp, k, _ = CASES[case]
+    res, spp, k = small(variant, *res), small(variant, *spp), small(variant, *k)
+    return batch(_scene(variant, case, res), renders.make_integrator("path", dict(params)),
+                 spp, k, first_seed=REFERENCE_SEED + first_seed)
 
 
 #: (variant, scene) pairs: every scene in llvm, those with a scalar budget in scalar.

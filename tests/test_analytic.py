@@ -118,8 +118,11 @@ def test_interior_furnace_closed_form(variant, name, max_depth):
 
 
 # (scalar: 6 renders of 4² px resolve 5 % in the interior too rarely to
-# claim it: the cosine twin was rejected in 10 of 20 seed sets)
-@pytest.mark.parametrize("variant_name, name, kind", twin_cases([]))
+# claim it: the cosine twin was rejected in 10 of 20 seed sets. mis: the
+# correct mis misses this closed form too, see above, so its twins show no
+# power here; test_agreement rejects them.)
+@pytest.mark.parametrize("variant_name, name, kind",
+                         [c for c in twin_cases([]) if c[1] != "mis"])
 def test_interior_furnace_rejects_broken_twins(use_variant, variant_name, name, kind):
     variant = use_variant(variant_name)
     values = furnace_interior(variant, twins.integrator(kind, name, {"max_depth": -1}), -1, 0.6)

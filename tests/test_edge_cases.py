@@ -250,6 +250,8 @@ def test_non_square_film_agrees_with_path(llvm, width, height):
                 first_seed=REFERENCE_SEED)
     result = statistics.compare(est, ref, ALPHA)
     assert result.passed, result.summary()
+    # twins: the image mirrored left-right (pixels misplaced), and a pdf 5 % high
+    assert not statistics.compare(est[:, :, ::-1], ref, ALPHA).passed, "mirrored accepted"
     twin = batch(scene, twins.integrator("pdf_high", "cosine_hemisphere"), SPP, K)
     result = statistics.compare(twin, ref, ALPHA)
     assert not result.passed, "pdf 5 % high was accepted: " + result.summary()
