@@ -4,6 +4,8 @@ twins.py."""
 
 from __future__ import annotations
 
+import ipaddress
+import socket
 from pathlib import Path
 
 import numpy as np
@@ -41,6 +43,58 @@ def hemisphere_estimators() -> list[str]:
 #: Fixed at collection time (parametrize needs lists).
 ALL_ESTIMATORS = estimators()
 HEMISPHERE = hemisphere_estimators()
+
+
+class OffMachineError(RuntimeError):
+    """A test tried to reach an address other than this machine's loopback."""
+
+
+def _check_loopback(address) -> None:
+    if not isinstance(address, tuple):                 # AF_UNIX paths stay local
+        return
+    host = str(address[0]).split("%")[0]
+    if host == "localhost":
+        return
+    try:
+        if ipaddress.ip_address(host).is_loopback:
+            return
+    except ValueError:                                 # a name: resolving it is a packet
+        pass
+    raise OffMachineError(f"a test tried to reach {host}: tests may only address the "
+                          "loopback (use 127.0.0.1 and a closed port for a refused request)")
+
+
+@pytest.fixture(autouse=True, scope="session")
+def loopback_only():
+    """No test sends a packet off this machine: this process may look up,
+    connect or send only to loopback addresses (browsers started by tests run
+    with background networking off and are given loopback URLs)."""
+    real = socket.socket.connect, socket.socket.connect_ex, socket.socket.sendto
+    real_getaddrinfo = socket.getaddrinfo
+
+    def getaddrinfo(host, *args, **kwargs):             # (a name lookup is a packet)
+        if host is not None:
+            _check_loopback((host.decode() if isinstance(host, bytes) else host, 0))
+        return real_getaddrinfo(host, *args, **kwargs)
+
+    def connect(self, address):
+        _check_loopback(address)
+        return real[0](self, address)
+
+    def connect_ex(self, address):
+        _check_loopback(address)
+        return real[1](self, address)
+
+    def sendto(self, data, *args):
+        _check_loopback(args[-1])
+        return real[2](self, data, *args)
+
+    socket.socket.connect, socket.socket.connect_ex, socket.socket.sendto = (
+        connect, connect_ex, sendto)
+    socket.getaddrinfo = getaddrinfo
+    yield
+    socket.socket.connect, socket.socket.connect_ex, socket.socket.sendto = real
+    socket.getaddrinfo = real_getaddrinfo
 
 
 @pytest.fixture(params=VARIANTS)

@@ -217,3 +217,16 @@ def test_no_module_imports_the_folders_as_top_level_packages():
                 bad += [f"{path.relative_to(ROOT)}:{node.lineno} {n}" for n in names
                         if n.split(".")[0] in ("integrators", "envmaps", "validation")]
     assert not bad, bad
+
+
+def test_tests_cannot_reach_off_this_machine():
+    """The conftest guard refuses any address but the loopback before a
+    packet leaves (192.0.2.1 is TEST-NET-1), and lets the loopback through."""
+    import socket
+
+    from conftest import OffMachineError
+    for host in ("192.0.2.1", "example.org"):
+        with pytest.raises(OffMachineError, match="loopback"):
+            socket.create_connection((host, 9), timeout=0.1)
+    with pytest.raises(ConnectionRefusedError):
+        socket.create_connection(("127.0.0.1", 9), timeout=0.5)
