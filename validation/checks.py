@@ -77,8 +77,6 @@ def check(ctx, name: str, what: str, outcome, message: str) -> Check:
     return Check(f"{ctx.id}/{name}/{what}", outcome != "fail", message, outcome)
 
 
-# ---------------------------- Scene comparisons -------------------------------
-
 # --------------------------- The rules of evidence -----------------------------
 #
 # A statistical test says fail only where its assumptions hold. The batch-means
@@ -238,6 +236,8 @@ def convergence_outcome(c, heavy: bool) -> tuple[str, str]:
     return "inconclusive", (f"{text}: contains 0 and does not lie more than "
                             f"{SLOPE_TOLERANCE} above {EXPECTED_SLOPE:+.0f}: cannot decide")
 
+
+# ---------------------------- Scene comparisons -------------------------------
 
 def finite(ctx, units, reference) -> list[Check]:
     """No NaN or Inf in any render of any rung."""

@@ -199,9 +199,9 @@ def _statistics_section(scene: SceneResult, run_dir: str, colours: dict) -> str:
             f"<tr><td>{_swatch(est.name, colours)}</td>"
             f"<td>{_fmt(top.relmse)} ({_fmt(top.relmse / best_rel if best_rel else None, '.2f')}×)</td>"
             f"<td>{top.bias:+.2e} ± {top.bias_se:.1e}</td>"
-            f"<td>{_outcome(u.outcome or ('pass' if u.passed else 'fail'), u.reason)} "
+            f"<td>{_outcome(u.outcome, u.reason)} "
             f"({100 * u.pass_fraction:.1f} %)</td>"
-            f"<td>{_outcome(c.outcome or ('pass' if c.passed else 'fail'), c.message)} "
+            f"<td>{_outcome(c.outcome, c.message)} "
             f"{slope}</td></tr>")
     ref_info = scene.reference
     capped = f" — capped ({ref_info.capped})" if ref_info.capped else ""

@@ -77,8 +77,17 @@ def _flat(default=None):
 OUTCOMES = ("pass", "fail", "inconclusive")
 
 
+class _Outcome:
+    """Records with ``passed`` and ``outcome``: a file from before minor
+    version 3 has no outcome, which then reads pass or fail from ``passed``."""
+
+    def __post_init__(self):
+        if not self.outcome:
+            self.outcome = "pass" if self.passed else "fail"
+
+
 @dataclass
-class Check:
+class Check(_Outcome):
     """One verdict of the run: ``id`` is ``<scene or case>/<estimator>/<what>``;
     ``outcome`` one of :data:`OUTCOMES`. ``passed`` is "did not fail": true
     for pass and for inconclusive (the evidence could not decide), which
@@ -90,8 +99,7 @@ class Check:
     outcome: str = ""
 
     def __post_init__(self):
-        if not self.outcome:                # (files before minor version 3)
-            self.outcome = "pass" if self.passed else "fail"
+        super().__post_init__()
         if self.outcome not in OUTCOMES:
             raise ValueError(f"check outcome must be one of {OUTCOMES}, got {self.outcome!r}")
         self.passed = self.outcome != "fail"
@@ -122,7 +130,7 @@ class RunStats:
 
 
 @dataclass
-class Unbiasedness:
+class Unbiasedness(_Outcome):
     """The batch-means test of all rungs pooled against the reference."""
 
     spp: int
@@ -146,7 +154,7 @@ class Unbiasedness:
 
 
 @dataclass
-class Convergence:
+class Convergence(_Outcome):
     """Slope of log relMSE against log spp with its 95 % interval."""
 
     slope: float
@@ -298,7 +306,7 @@ class SppToMatch:
 
 
 @dataclass
-class BatchTest:
+class BatchTest(_Outcome):
     """The batch-means test of K renders and, where it rejected, its replication
     in K fresh renders (``replicated`` None: nothing needed replicating)."""
 
@@ -622,10 +630,10 @@ def summary(results: Results) -> str:
             top, u, c = est.top, est.unbiasedness, est.convergence
             lines.append(
                 f"| {est.name} | {top.relmse:.3g} | {top.bias:+.2e} ± {top.bias_se:.1e} | "
-                f"{_word(u.outcome or ('pass' if u.passed else 'fail'))} "
+                f"{_word(u.outcome)} "
                 f"({100 * u.pass_fraction:.1f}) | "
                 + ("exact" if c.exact else
-                   f"{_word(c.outcome or ('pass' if c.passed else 'fail'))} {c.slope:+.2f} "
+                   f"{_word(c.outcome)} {c.slope:+.2f} "
                    f"[{c.low:+.2f}, {c.high:+.2f}]")
                 + f" | {top.samples_per_second / 1e6:.2f} M | {top.efficiency:.3g} |")
         if scene.speed:

@@ -243,21 +243,27 @@ def test_bias(ctx) -> None:
     reference, read by the rules of checks.py; a rejection that counts is
     tested again on K fresh renders."""
     units = ctx.units[ctx.plan.spp]
+    decide = _decider(ctx)
     for name, row in ctx.rows.items():
         n = row.numbers
         if n is None or row.refused or n.nonfinite_values or n.negative_values:
             continue
-        n.test = _replicated_test(ctx, name, units[name].images)
+        n.test = _replicated_test(ctx, name, units[name].images, decide)
 
 
-def _replicated_test(ctx, name: str, x: np.ndarray) -> BatchTest:
-    ref = ctx.reference.mean
+def _decider(ctx):
+    """The rules of checks.py for this case's renders, with path's fireflies
+    (counted once per case) as the reference's tail."""
     units = ctx.units[ctx.plan.spp]
-    path_events = (tails.tail_events([units[REFERENCE].images], ref)[0]
+    path_events = (tails.tail_events([units[REFERENCE].images], ctx.reference.mean)[0]
                    if REFERENCE in units else None)
+    return analysis.decider(ctx.reference.mean, ctx.plan.spp, path_events)
+
+
+def _replicated_test(ctx, name: str, x: np.ndarray, decide) -> BatchTest:
     return statistics.replicated_compare(
         x[..., :3], ctx.reference.moments(), lambda: _fresh(ctx, name)[..., :3], ALPHA,
-        analysis.decider(ref, ctx.plan.spp, path_events))
+        decide)
 
 
 def split_sun(ctx) -> None:
@@ -280,8 +286,9 @@ def split_sun(ctx) -> None:
     samples = ctx.plan.seeds * ctx.plan.spp
     sunless_mean = float(sub.reference.mean[..., :3].mean())
     image_mean = float(ctx.reference.mean[..., :3].mean())
+    decide = _decider(sub)
     for name in tested:
-        test = _replicated_test(sub, name, sub.units[ctx.plan.spp][name].images)
+        test = _replicated_test(sub, name, sub.units[ctx.plan.spp][name].images, decide)
         ctx.rows[name].numbers.sun = SunSplit(
             facts, not (test.outcome == "fail" and test.replicated), test.test,
             sunless_mean, expected_sun_hits(name, samples, facts["solid_angle"]),

@@ -87,8 +87,9 @@ def tail_events(stacks, reference: np.ndarray, weights=None):
     reference, summed over pixels and averaged over renders as the mean of
     the stacks weighs them (``weights``: one per stack, e.g. its spp, as
     statistics.Moments.pooled weighs rungs; default equal), in radiance, as
-    a share of the image mean of one render. Each firefly is a render in which that pixel caught a rare,
-    bright contribution: the evidence that an estimator is heavy-tailed here."""
+    a share of the image mean of one render. Each firefly is a render in
+    which that pixel caught a rare, bright contribution: the evidence that an
+    estimator is heavy-tailed here."""
     stacks = list(stacks)
     weights = [1.0] * len(stacks) if weights is None else list(weights)
     events, n, carried, total = 0, 0, 0.0, 0.0
