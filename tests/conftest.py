@@ -17,8 +17,7 @@ import mitsuba as mi
 from mcillum.integrators import registry
 from mcillum.validation import renders
 
-from twins import (clamped_class, has_pdf_pair, path_at_depth_class,  # noqa: F401
-                   plugin_class, wrong_pdf_class, wrong_pdf_integrator)
+from twins import has_pdf_pair, plugin_class
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENES = ROOT / "scenes"

@@ -99,8 +99,8 @@ def test_agrees_with_path_hiding_emitters(llvm, name):
     est, ref = stacks(llvm, "cornell_box", name, 3, params={"hide_emitters": True})
     result = statistics.compare(est, ref, ALPHA)
     assert result.passed, result.summary()
-    shown = batch(renders.load_scene(scenes.path("cornell_box"), res=CASES["cornell_box"][0][1]),
-                  renders.make_integrator(name, {"max_depth": 3}), 2048, 16)
+    shown, _ = stacks(llvm, "cornell_box", renders.make_integrator(name, {"max_depth": 3}), 3,
+                      params={"hide_emitters": True})
     assert not statistics.compare(shown, ref, ALPHA).passed, "the light shown was accepted"
 
 
@@ -119,31 +119,35 @@ def test_delta_content_is_reached_by_those_that_declare_it(llvm, name, case):
     """Delta lights, delta lobes and transmission: an estimator whose facts
     say it reaches them renders the scene unbiased (the others refuse it:
     test_refusals.py)."""
-    result = delta_comparison(case, renders.make_integrator)(name)
+    depth = DELTA_CASES[case][1]
+    result = delta_comparison(case, renders.make_integrator(name, {"max_depth": depth}))
     assert result.passed, result.summary()
 
 
-def delta_comparison(case, make):
+@functools.lru_cache(maxsize=None)
+def delta_reference(case):
+    """K renders of `path` for a delta case, shared by estimators and twins."""
     (res, spp, k), depth = DELTA_CASES[case]
-    scene = renders.load_scene(scenes.path(case), res=res)
+    return batch(_scene("llvm_ad_rgb", case, res),
+                 renders.make_integrator("path", {"max_depth": depth}), spp, k,
+                 first_seed=REFERENCE_SEED)
 
-    def compare(name):
-        est = batch(scene, make(name, {"max_depth": depth}), spp, k)
-        ref = batch(scene, renders.make_integrator("path", {"max_depth": depth}), spp, k,
-                    first_seed=REFERENCE_SEED)
-        return statistics.compare(est, ref, ALPHA)
-    return compare
+
+def delta_comparison(case, integrator):
+    (res, spp, k), _ = DELTA_CASES[case]
+    est = batch(_scene("llvm_ad_rgb", case, res), integrator, spp, k)
+    return statistics.compare(est, delta_reference(case), ALPHA)
 
 
 @pytest.mark.parametrize("name, case", [
-    (n, c) for c in DELTA_CASES for n, _ in twins.cases(ALL_ESTIMATORS, ("black",))
+    (n, c) for c in DELTA_CASES for n in ALL_ESTIMATORS
     if registry.facts(n).renders(scenes.index()[c].contains)
     and twins.TWINS[DELTA_TWINS[c]].applies(twins.plugin_class(n))])
 def test_delta_content_rejects_a_broken_twin(llvm, name, case):
     """The same test and budget reject the technique that reaches the delta
     content with its weight 5 % low."""
-    kind = DELTA_TWINS[case]
-    result = delta_comparison(case, lambda n, p: twins.integrator(kind, n, p))(name)
+    kind, depth = DELTA_TWINS[case], DELTA_CASES[case][1]
+    result = delta_comparison(case, twins.integrator(kind, name, {"max_depth": depth}))
     assert not result.passed, f"{twins.TWINS[kind].bug} was accepted: " + result.summary()
 
 

@@ -19,8 +19,8 @@ from mcillum.validation import pipeline, profiles, renders, seeds, statistics, t
 from mcillum.validation.checks import FAILING, HEAVY, NOT_REPLICATED
 from mcillum.validation.context import Run
 
-from conftest import (ALL_ESTIMATORS, SCENES, clamped_class, path_at_depth_class,
-                      wrong_pdf_class)
+from conftest import ALL_ESTIMATORS, SCENES
+from twins import clamped_class, path_at_depth_class, wrong_pdf_class
 
 # ------------------------------ Definitions ---------------------------------
 

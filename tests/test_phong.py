@@ -84,15 +84,12 @@ def unnormalised(kd=0.3, ks=0.7, n=10.0):
     textbook slip (that is the pdf's constant, not the BSDF's)."""
     from mcillum.integrators.phong import PhongBSDF
 
-    def only(flag):
-        ctx = mi.BSDFContext()
-        ctx.type_mask = +flag
-        return ctx
-
     class Unnormalised(PhongBSDF):
         def eval(self, ctx, si, wo, active=True):
-            diffuse = super().eval(only(mi.BSDFFlags.DiffuseReflection), si, wo, active)
-            glossy = super().eval(only(mi.BSDFFlags.GlossyReflection), si, wo, active)
+            diffuse = super().eval(twins.lobes_only(mi.BSDFFlags.DiffuseReflection), si, wo,
+                                   active)
+            glossy = super().eval(twins.lobes_only(mi.BSDFFlags.GlossyReflection), si, wo,
+                                  active)
             return diffuse + glossy * (self.exponent + 1.0) / (self.exponent + 2.0)
 
     mi.register_bsdf("phong_unnormalised", lambda props: Unnormalised(props))

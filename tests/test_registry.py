@@ -88,7 +88,7 @@ def test_a_new_estimator_appears_everywhere_without_other_edits(throwaway):
         (throwaway, k) for k in ("pdf_high", "glossy_dropped", "region_dark", "black")]
     w = mi.Vector3f(0.6, 0.0, 0.8)
     assert dr.allclose(twins.integrator("pdf_high", throwaway).pdf_local(w),
-                       1.05 * conftest.plugin_class(throwaway).pdf_local(w))
+                       1.05 * twins.plugin_class(throwaway).pdf_local(w))
     # scenes: it renders the point light (it reaches delta lights), unlike
     # the estimator it derives from
     contains = scenes.index()["point_light"].contains

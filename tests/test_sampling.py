@@ -20,7 +20,8 @@ from mcillum.integrators.bsdf_sampling import bsdf_direction_pdf, sample_bsdf_di
 from mcillum.integrators.emitter_sampling import emitter_direction_pdf, sample_emitter_direction
 from mcillum.validation import renders, scenes
 
-from conftest import HEMISPHERE, plugin_class
+from conftest import HEMISPHERE
+from twins import plugin_class
 
 ALPHA = 0.01
 

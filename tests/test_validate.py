@@ -21,7 +21,6 @@ from mcillum.validation import cli, profiles, references, renders, results, scen
 from mcillum.validation.context import Context, Run
 
 import twins
-from conftest import wrong_pdf_integrator
 
 # A small profile for tests: the two analytic scenes, few rungs.
 TINY = profiles.Profile("quick", (
@@ -159,8 +158,8 @@ def test_too_few_rungs_claim_nothing(llvm):
 
 
 def test_biased_estimator_fails_with_exit_1(llvm, tiny_profile, tmp_path, capsys):
-    biased = wrong_pdf_integrator("cosine_hemisphere")
-    mi.register_integrator("biased_cosine", lambda props, cls=type(biased): cls(props))
+    biased = twins.wrong_pdf_class("cosine_hemisphere")
+    mi.register_integrator("biased_cosine", lambda props, cls=biased: cls(props))
     code, out = run_cli(tmp_path, "--scenes", "cap_plane",
                         "--estimators", "cosine_hemisphere", "biased_cosine")
     data = json.loads((out / "results.json").read_text())

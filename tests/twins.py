@@ -87,25 +87,29 @@ def emitter_weight_class(base: str, factor: float = 0.95):
     return EmitterWeight
 
 
+def lobes_only(flags) -> mi.BSDFContext:
+    """A BSDF context that enables only the lobes of ``flags``."""
+    ctx = mi.BSDFContext()
+    ctx.type_mask = +flags
+    return ctx
+
+
 def glossy_dropped_class(base: str):
     """``base`` that evaluates, samples and weights only the diffuse lobes:
     every BSDF call gets a context without glossy reflection (the bug of a
     renderer that forgets one lobe of a layered material)."""
     cls = plugin_class(base)
 
-    def diffuse_only():
-        ctx = mi.BSDFContext()
-        ctx.type_mask = +mi.BSDFFlags.DiffuseReflection
-        return ctx
-
     class GlossyDropped(cls):
         plugin_name = f"{base}_glossy_dropped"
 
         def sample_direction(self, scene, sampler, si, bsdf, ctx):
-            return super().sample_direction(scene, sampler, si, bsdf, diffuse_only())
+            return super().sample_direction(scene, sampler, si, bsdf,
+                                            lobes_only(mi.BSDFFlags.DiffuseReflection))
 
         def emitter_sample(self, scene, sampler, si, bsdf, ctx):
-            return super().emitter_sample(scene, sampler, si, bsdf, diffuse_only())
+            return super().emitter_sample(scene, sampler, si, bsdf,
+                                          lobes_only(mi.BSDFFlags.DiffuseReflection))
 
     return GlossyDropped
 
@@ -256,9 +260,3 @@ def integrator(kind: str, base: str, params: dict | None = None, **options) -> m
     name = f"{base}__{kind}"
     mi.register_integrator(name, lambda props, cls=cls: cls(props))
     return renders.make_integrator(name, params)
-
-
-def wrong_pdf_integrator(base: str = "cosine_hemisphere", factor: float = 1.05,
-                         props: "mi.Properties | None" = None):
-    """An instance of :func:`wrong_pdf_class`."""
-    return wrong_pdf_class(base, factor)(props or mi.Properties())
