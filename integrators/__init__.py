@@ -7,7 +7,7 @@ Importing this package (``import mcillum`` does) does three things, in order:
    (unless ``DRJIT_LIBLLVM_PATH`` is set), *before* drjit is first imported;
 2. registers every plugin of this folder for the current Mitsuba variant (if
    one is set): every module except the shared ones in :data:`SHARED`, the
-   common base ``estimator`` first;
+   base classes in :data:`BASES` first;
 3. registers them again whenever ``mi.set_variant`` switches.
 
 :func:`register` does step 2 by hand; calling it twice is harmless. The
@@ -30,9 +30,10 @@ from . import registry  # noqa: E402,F401
 from .scene_checks import UnreachableContentError  # noqa: E402,F401  (variant-free)
 
 #: Modules that hold no plugin and do not depend on the variant.
-SHARED = ("_llvm", "passes", "registry", "scene_checks")
-#: The base class every estimator derives from: (re)loaded before the plugins.
-BASE = "estimator"
+SHARED = ("_llvm", "gp_quadrature", "passes", "registry", "scene_checks")
+#: Base classes the plugins derive from, (re)loaded in this order before them:
+#: every estimator's, then that of the estimators of N directions per point.
+BASES = ("estimator", "direction_set")
 
 _registered_for: str | None = None
 
@@ -40,7 +41,7 @@ _registered_for: str | None = None
 def plugin_modules() -> list[str]:
     """The plugin modules of this folder (an estimator or a BSDF each)."""
     names = sorted(m.name for m in pkgutil.iter_modules(__path__))
-    return [n for n in names if n not in SHARED and n != BASE]
+    return [n for n in names if n not in SHARED and n not in BASES]
 
 
 def register() -> str:
@@ -59,7 +60,7 @@ def register() -> str:
     _llvm.check(variant)
     if _registered_for == variant:
         return variant
-    for name in (BASE, *plugin_modules()):
+    for name in (*BASES, *plugin_modules()):
         qualified = f"{__name__}.{name}"
         module = sys.modules.get(qualified)
         # (Re)executing a plugin module rebinds its class to this variant's

@@ -118,11 +118,19 @@ class IlluminationEstimator(mi.SamplingIntegrator):
     #: Kinds of scene content (scene_checks.KINDS) it renders although a
     #: continuous hemisphere pdf cannot reach them; it refuses the others.
     reachable: frozenset[str] = frozenset()
+    #: Only diffuse BSDFs (weights that assume f_r constant): glossy lobes
+    #: ("glossy_bsdf") are refused too. Every estimator that weights each
+    #: direction by f cos / p reaches them.
+    diffuse_only = False
     #: Largest density it puts on any direction (None: depends on the BSDF,
     #: or next-event estimation finds small sources anyway).
     max_direction_pdf: float | None = None
     #: Position in tables and charts (path, the reference, comes last).
     listing_order = 100
+    #: The max_depth values it defines (None: any).
+    depths: tuple[int, ...] | None = None
+    #: False for an estimator biased by design (its bias is measured, not tested).
+    unbiased = True
 
     #: One emitter sample per vertex (next-event estimation)?
     use_nee = False
@@ -188,8 +196,9 @@ class IlluminationEstimator(mi.SamplingIntegrator):
         biased image: then record what it lacks in ``unreachable`` and warn,
         once per scene. :meth:`render` calls it before any work; callers may
         ask it without rendering."""
+        reachable = self.reachable | (set() if self.diffuse_only else {"glossy_bsdf"})
         self.unreachable = scene_checks.check_reachable(
-            scene, self.plugin_name, self.reachable, self.allow_unreachable,
+            scene, self.plugin_name, frozenset(reachable), self.allow_unreachable,
             warn=getattr(self, "_warned_for", None) != id(scene))
         if self.unreachable:
             self._warned_for = id(scene)

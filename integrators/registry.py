@@ -13,7 +13,12 @@ Each plugin class declares its facts as class attributes beside its strategy
 * ``max_direction_pdf`` — the largest density it puts on any direction, which
   bounds how often it can hit a small source (None: it depends on the BSDF
   lobe, or next-event estimation finds the source anyway);
-* ``listing_order`` — where it stands in tables and charts.
+* ``listing_order`` — where it stands in tables and charts;
+* ``depths`` — the ``max_depth`` values it defines (None: any);
+* ``unbiased`` — False for an estimator biased by design (a quadrature such
+  as bayesian_hemisphere): the suite then measures its bias instead of
+  testing for none;
+* ``diffuse_only`` — it refuses glossy lobes too (``glossy_bsdf``).
 
 :func:`register` (called at the bottom of every plugin file) registers the
 class with Mitsuba for the current variant and records its facts here. Facts
@@ -39,7 +44,7 @@ from .scene_checks import KINDS
 REFERENCE = "path"
 
 #: Colours for integrators that declare none (any Mitsuba plugin can be validated).
-SPARE_COLOURS = ("#8c564b", "#e377c2", "#17becf", "#bcbd22", "#7f7f7f")
+SPARE_COLOURS = ("#e377c2", "#bcbd22", "#7f7f7f", "#aec7e8", "#ffbb78")
 
 
 @dataclass(frozen=True)
@@ -53,15 +58,25 @@ class Facts:
     max_direction_pdf: float | None = None
     listing_order: int = 100
     ours: bool = True
+    depths: tuple[int, ...] | None = None
+    unbiased: bool = True
+    diffuse_only: bool = False
+
+    @property
+    def reaches(self) -> frozenset:
+        """``reachable``, and glossy lobes unless it is diffuse only."""
+        return self.reachable | (frozenset() if self.diffuse_only else {"glossy_bsdf"})
 
     @property
     def unreachable(self) -> tuple[str, ...]:
         """The kinds of content it refuses (participating media always)."""
-        return tuple(k for k in KINDS if k not in self.reachable)
+        return tuple(k for k in KINDS if k not in self.reaches)
 
-    def renders(self, contains) -> bool:
-        """Does it render a scene holding these kinds of content?"""
-        return all(kind in self.reachable for kind in contains)
+    def renders(self, contains, max_depth: int | None = None) -> bool:
+        """Does it render a scene holding these kinds of content (at this
+        ``max_depth``, if given)?"""
+        return (all(kind in self.reaches for kind in contains)
+                and (max_depth is None or self.depths is None or max_depth in self.depths))
 
 
 #: Mitsuba's `path`: emitter sampling and BSDF sampling, MIS; no media.
@@ -75,7 +90,10 @@ _facts: dict[str, Facts] = {}
 def facts_of(cls) -> Facts:
     """The :class:`Facts` a plugin class declares."""
     return Facts(cls.plugin_name, cls.display_name or cls.plugin_name, cls.colour,
-                 frozenset(cls.reachable), cls.max_direction_pdf, cls.listing_order)
+                 frozenset(cls.reachable), cls.max_direction_pdf, cls.listing_order,
+                 # (classes not derived from IlluminationEstimator may omit these)
+                 depths=getattr(cls, "depths", None), unbiased=getattr(cls, "unbiased", True),
+                 diffuse_only=getattr(cls, "diffuse_only", False))
 
 
 def register(cls) -> type:

@@ -12,6 +12,9 @@ and an image rendered anyway would be silently wrong (biased dark):
   the pdf covers only the hemisphere on the side of the incident ray.
 
 Participating media are refused as well: these integrators do not trace them.
+A fourth kind, glossy lobes, every estimator reaches but ``bayesian_hemisphere``,
+whose quadrature weights assume a diffuse BSDF (f_r constant over the
+hemisphere).
 
 :func:`unreachable` lists the problems; :func:`check_reachable` raises
 :class:`UnreachableContentError` naming the first few with a remedy. Nothing
@@ -28,17 +31,18 @@ import mitsuba as mi
 
 #: Every kind of :class:`Problem`: what a continuous pdf over the reflection
 #: hemisphere cannot reach (estimators declare which they reach anyway).
-KINDS = ("delta_emitter", "delta_bsdf", "transmission", "medium")
+KINDS = ("delta_emitter", "delta_bsdf", "transmission", "glossy_bsdf", "medium")
 #: Each kind in words.
 KIND_NAMES = {"delta_emitter": "delta lights", "delta_bsdf": "delta BSDF lobes",
-              "transmission": "transmission", "medium": "participating media"}
+              "transmission": "transmission", "glossy_bsdf": "glossy BSDF lobes",
+              "medium": "participating media"}
 
 
 @dataclass(frozen=True)
 class Problem:
     """One piece of scene content an estimator cannot represent."""
 
-    kind: str  # 'delta_emitter' | 'delta_bsdf' | 'transmission' | 'medium'
+    kind: str  # one of KINDS
     what: str  # the offending object, e.g. "point emitter 'key_light'"
     remedy: str
 
@@ -104,6 +108,12 @@ def _flag_problems(bsdf, owner: str) -> list[Problem]:
             "transmission", f"{owner} transmits or passes light through",
             f"hemisphere estimators integrate reflection only, and emitter samples "
             f"cannot pass through it; {_FOR_DELTA_LOBES}, or use an opaque BSDF"))
+    if mi.has_flag(flags, mi.BSDFFlags.Glossy):
+        out.append(Problem(
+            "glossy_bsdf", f"{owner} has a glossy lobe",
+            "quadrature weights that assume a diffuse BSDF (bayesian_hemisphere) "
+            "would be wrong for it; use fibonacci_hemisphere (it splits its "
+            "directions between the lobes), cosine_hemisphere or mis"))
     return out
 
 

@@ -29,8 +29,16 @@ renders.set_variant("llvm_ad_rgb")      # the registry fills when a variant is s
 
 
 def estimators() -> list[str]:
-    """Every registered mcillum estimator (registry order)."""
-    return registry.names()
+    """Every registered mcillum estimator of paths (registry order): those
+    that define every max_depth. The estimators of N directions per point
+    (direct light only, one biased by design) have their own tests:
+    test_direction_sets.py, and :data:`POINT_SETS`."""
+    return [n for n in registry.names() if registry.facts(n).depths is None]
+
+
+def point_sets() -> list[str]:
+    """The registered estimators of N directions per shading point."""
+    return [n for n in registry.names() if registry.facts(n).depths is not None]
 
 
 def hemisphere_estimators() -> list[str]:
@@ -42,6 +50,7 @@ def hemisphere_estimators() -> list[str]:
 #: Fixed at collection time (parametrize needs lists).
 ALL_ESTIMATORS = estimators()
 HEMISPHERE = hemisphere_estimators()
+POINT_SETS = point_sets()
 
 
 class OffMachineError(RuntimeError):

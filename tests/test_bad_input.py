@@ -25,7 +25,8 @@ from conftest import ROOT, SCENES
 CORNELL = str(SCENES / "cornell_box.xml")
 CAP = str(SCENES / "cap_plane.xml")
 MCILLUM_INTEGRATORS = ("mcillum's integrators are uniform_hemisphere, cosine_hemisphere, "
-                       "bsdf_sampling, emitter_sampling, mis")
+                       "bsdf_sampling, emitter_sampling, mis, fibonacci_hemisphere, "
+                       "bayesian_hemisphere")
 
 
 @pytest.fixture

@@ -28,7 +28,7 @@ def refusal(scene, name) -> UnreachableContentError:
 
 def missing(name: str, kinds) -> set:
     """The kinds among ``kinds`` that estimator ``name`` does not reach."""
-    return set(kinds) - set(registry.facts(name).reachable)
+    return set(kinds) - set(registry.facts(name).reaches)
 
 
 def renders_finite(scene, name):

@@ -22,7 +22,7 @@ import twins
 def test_every_estimator_declares_its_facts(llvm):
     names = registry.names()
     assert names == ["uniform_hemisphere", "cosine_hemisphere", "bsdf_sampling",
-                     "emitter_sampling", "mis"]
+                     "emitter_sampling", "mis", "fibonacci_hemisphere", "bayesian_hemisphere"]
     colours = [registry.facts(n).colour for n in names] + [registry.PATH.colour]
     assert all(re.fullmatch(r"#[0-9a-f]{6}", c) for c in colours)
     assert len(set(colours)) == len(colours), "two estimators share a colour"
@@ -30,6 +30,12 @@ def test_every_estimator_declares_its_facts(llvm):
         f = registry.facts(n)
         assert f.display_name and f.display_name != n
         assert set(f.reachable) <= set(KINDS) and "medium" in f.unreachable
+    # the estimators of N directions: direct light only; the quadrature is
+    # biased by design and refuses glossy lobes
+    assert [registry.facts(n).depths for n in names] == [None] * 5 + [(1, 2)] * 2
+    assert [registry.facts(n).unbiased for n in names] == [True] * 6 + [False]
+    assert [("glossy_bsdf" in registry.facts(n).unreachable) for n in names] == \
+        [False] * 6 + [True]
 
 
 def test_largest_direction_pdfs_are_the_strategies_own(llvm):
@@ -54,6 +60,8 @@ def test_scenes_are_rendered_by_exactly_the_estimators_that_reach_them(llvm):
     assert rendering("point_light") == ["emitter_sampling", "mis", "path"]
     assert rendering("smooth_glass") == ["bsdf_sampling", "mis", "path"]
     assert rendering("cornell_box") == [*registry.names(), "path"]
+    assert rendering("probe_spheres") == [n for n in [*registry.names(), "path"]
+                                          if n != "bayesian_hemisphere"]
 
 
 @pytest.fixture

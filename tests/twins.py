@@ -11,6 +11,8 @@ twin                   the bug                                               app
 ``pdf_high``           pdf 5 % too high (``pdf_local`` × 1.05)               hemisphere pairs
 ``bsdf_weight_low``    BSDF-sample weight f cos/p × 0.95 (its pdf 5 % high)  direct light from BSDF hits
 ``emitter_weight_low`` emitter-sample weight L_e/p × 0.95                    next-event estimators
+``set_weight_low``     each direction's weight of a set × 0.95               estimators of N directions
+``unshifted_set``      the point set never shifted (the same N directions)   shifted point sets
 ``glossy_dropped``     the glossy lobe left out of every BSDF call           all (glossy scenes only)
 ``region_dark``        radiance × 0.7 in one block of the image              all (a local error)
 ``black``              renders zeros                                         all
@@ -41,6 +43,11 @@ def has_pdf_pair(cls) -> bool:
     """Is ``cls`` a hemisphere estimator (its own ``sample_local``/``pdf_local``)?"""
     base = next(c for c in cls.__mro__ if c.__name__ == "IlluminationEstimator")
     return cls.pdf_local is not base.pdf_local
+
+
+def is_direction_set(cls) -> bool:
+    """Does ``cls`` trace a set of N directions per shading point?"""
+    return any(c.__name__ == "DirectionSetEstimator" for c in cls.__mro__)
 
 
 # ------------------------------- The twins ---------------------------------
@@ -87,6 +94,35 @@ def emitter_weight_class(base: str, factor: float = 0.95):
     return EmitterWeight
 
 
+def set_weight_class(base: str, factor: float = 0.95):
+    """``base`` (N directions per point) with every direction's factor
+    f cos/p scaled by ``factor``."""
+    cls = plugin_class(base)
+
+    class SetWeight(cls):
+        plugin_name = f"{base}_set_weight_x{factor}"
+
+        def direction(self, j, drawn, si, bsdf, ctx, active):
+            wo, f, a = super().direction(j, drawn, si, bsdf, ctx, active)
+            return wo, f * factor, a
+
+    return SetWeight
+
+
+def unshifted_set_class(base: str = "fibonacci_hemisphere"):
+    """``base`` whose point set is never shifted: the same N directions at
+    every shading point, a deterministic quadrature (biased)."""
+    cls = plugin_class(base)
+
+    class Unshifted(cls):
+        plugin_name = f"{base}_unshifted"
+
+        def shift(self, sampler, active):
+            return mi.Point2f(0.0, 0.0)
+
+    return Unshifted
+
+
 def lobes_only(flags) -> mi.BSDFContext:
     """A BSDF context that enables only the lobes of ``flags``."""
     ctx = mi.BSDFContext()
@@ -110,6 +146,10 @@ def glossy_dropped_class(base: str):
         def emitter_sample(self, scene, sampler, si, bsdf, ctx):
             return super().emitter_sample(scene, sampler, si, bsdf,
                                           lobes_only(mi.BSDFFlags.DiffuseReflection))
+
+        def direction(self, j, drawn, si, bsdf, ctx, active):
+            return super().direction(j, drawn, si, bsdf,
+                                     lobes_only(mi.BSDFFlags.DiffuseReflection), active)
 
     return GlossyDropped
 
@@ -164,7 +204,7 @@ def black_class(base: str):
         plugin_name = f"{base}_black"
 
         def sample(self, scene, sampler, ray, medium=None, active=True):
-            return mi.Spectrum(0), mi.Bool(active), []
+            return mi.Spectrum(0), mi.Bool(active), [mi.Float(0)] * len(self.aov_names())
 
     return Black
 
@@ -224,7 +264,8 @@ class Twin:
 
 def _direct_from_bsdf_hits(cls) -> bool:
     # the BSDF-sampled direction carries direct light unless NEE alone does
-    return (not has_pdf_pair(cls)) and (not cls.use_nee or cls.use_mis)
+    return (not has_pdf_pair(cls) and not is_direction_set(cls)
+            and (not cls.use_nee or cls.use_mis))
 
 
 TWINS = {t.name: t for t in (
@@ -233,6 +274,10 @@ TWINS = {t.name: t for t in (
          bsdf_weight_class),
     Twin("emitter_weight_low", "emitter-sample weight 5 % low", lambda c: bool(c.use_nee),
          emitter_weight_class),
+    Twin("set_weight_low", "set-direction weight 5 % low", is_direction_set,
+         set_weight_class),
+    Twin("unshifted_set", "point set not shifted", lambda c: hasattr(c, "shift"),
+         unshifted_set_class),
     Twin("glossy_dropped", "glossy lobe left out", lambda c: True, glossy_dropped_class),
     Twin("region_dark", "30 % dark in one block of the image", lambda c: True,
          region_dark_class),
@@ -240,7 +285,7 @@ TWINS = {t.name: t for t in (
 )}
 
 #: The twins that play a global error in how one sample is weighted.
-WEIGHT_TWINS = ("pdf_high", "bsdf_weight_low", "emitter_weight_low")
+WEIGHT_TWINS = ("pdf_high", "bsdf_weight_low", "emitter_weight_low", "set_weight_low")
 
 
 def cases(names, kinds=WEIGHT_TWINS) -> list[tuple[str, str]]:

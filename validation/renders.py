@@ -187,6 +187,26 @@ class Render:
     spp: int
     seed: int
     meta: dict = field(default_factory=dict)
+    #: The integrator's AOVs by group ("posterior_var.R" → "posterior_var"),
+    #: each (H, W, k); a ``posterior_var`` (bayesian_hemisphere's, the mean
+    #: over the pixel's camera samples) also gives ``posterior_std`` = √var.
+    aovs: dict = field(default_factory=dict)
+
+
+def split_aovs(image: np.ndarray, names) -> tuple[np.ndarray, dict]:
+    """(radiance channels, AOV groups) of a developed film whose last
+    ``len(names)`` channels are the integrator's AOVs ``names``."""
+    names = list(names)
+    if not names:
+        return image, {}
+    groups: dict[str, list[int]] = {}
+    first = image.shape[-1] - len(names)
+    for i, name in enumerate(names):
+        groups.setdefault(name.split(".")[0], []).append(first + i)
+    aovs = {g: image[..., idx] for g, idx in groups.items()}
+    if "posterior_var" in aovs:
+        aovs["posterior_std"] = np.sqrt(np.maximum(aovs["posterior_var"], 0))
+    return image[..., :first], aovs
 
 
 def render(scene: mi.Scene, integrator: mi.Integrator, spp: int, seed: int = 0) -> Render:
@@ -202,8 +222,9 @@ def render(scene: mi.Scene, integrator: mi.Integrator, spp: int, seed: int = 0) 
         plan, seed, lambda s, n: mi.render(scene, integrator=integrator, spp=n, seed=s))
     dr.sync_thread()
     seconds = time.perf_counter() - start
-    return Render(np.array(image, dtype=np.float32), seconds, spp, seed,
-                  {"passes": len(plan)} if len(plan) > 1 else {})
+    image, aovs = split_aovs(np.array(image, dtype=np.float32), integrator.aov_names())
+    return Render(image, seconds, spp, seed, {"passes": len(plan)} if len(plan) > 1 else {},
+                  aovs)
 
 
 def provenance(scene_path: str, name: str, integrator, params: dict, defines: dict,
@@ -237,6 +258,8 @@ def save(path: str, result: Render, meta: dict, exposure: float = 0.0) -> str:
     """Write the render as EXR at ``path`` and a tone-mapped PNG beside it;
     returns the PNG's path."""
     png = preview_path(path)
-    files.write_exr(path, result.image, meta)
+    files.write_exr(path, result.image, meta,
+                    {k: v for k, v in result.aovs.items()
+                     if k != "posterior_var" and v.shape[-1] in (1, 3, 4)})
     images.write_png(png, result.image, exposure)
     return png
