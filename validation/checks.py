@@ -11,7 +11,10 @@ pipeline runs the tuples below:
 
 * :data:`SCENE` — per scene × estimator: ``finite`` (no NaN/Inf), ``unbiased``
   (the batch-means test of all rungs pooled, :mod:`statistics`, read by
-  :func:`bias_outcome`), ``converges`` (:func:`convergence_outcome`);
+  :func:`bias_outcome`), ``converges`` (:func:`convergence_outcome`); for
+  an estimator biased by design (a quadrature) instead ``bias_shrinks``
+  (from N = 16 to 256 directions) and ``calibrated`` (its posterior std
+  against the measured error), from the quadrature stage (quadrature.py);
 * :data:`CASE` — per failure case × estimator: ``refuses`` (an estimator
   refuses exactly the scenes whose content it cannot reach, by its registry
   facts) and ``stable`` (its verdict: fail for "biased" and
@@ -24,7 +27,8 @@ what a rejection of the unbiasedness test means.
 
 Failure-case verdicts (:func:`case_verdict`): ``fine``; ``heavy-tailed``
 (passes, but the error is carried by rare renders or pixels:
-:func:`tails.is_heavy`); ``refused``; ``biased (opt-in)``;
+:func:`tails.is_heavy`); ``refused``; ``biased (opt-in)``; ``biased (by
+design)`` (a quadrature's bias, reported with its numbers, not failed);
 ``inconclusive: heavy tail`` (every rejection is one a tail can explain; or,
 on a map with a sun, a rejection that replicated but not on the map without
 the sun, by an estimator whose renders caught fireflies and which is expected
@@ -45,6 +49,7 @@ missed sun only darkens).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -249,11 +254,19 @@ def finite(ctx, units, reference) -> list[Check]:
     return out
 
 
+def _by_design(name: str) -> bool:
+    """Is ``name`` biased by design (a quadrature: no unbiasedness to test)?"""
+    return not registry.facts(name).unbiased
+
+
 def unbiased(ctx, units, reference) -> list[Check]:
     """The pooled batch-means test (measured by the ``measure`` stage), read
-    by :func:`bias_outcome`."""
+    by :func:`bias_outcome`; not for estimators biased by design (their bias
+    is measured against N instead: :func:`bias_shrinks`)."""
     out = []
     for name, est in ctx.measured.items():
+        if _by_design(name):
+            continue
         u = est.unbiasedness
         out.append(check(ctx, name, "unbiased", u.outcome,
                          u.summary if u.outcome == "pass" else f"{u.reason} — {u.summary}"))
@@ -264,17 +277,68 @@ def converges(ctx, units, reference) -> list[Check]:
     """The error falls with spp as Monte Carlo's should
     (:func:`convergence_outcome`)."""
     return [check(ctx, name, "converges", est.convergence.outcome, est.convergence.message)
-            for name, est in ctx.measured.items()]
+            for name, est in ctx.measured.items() if not _by_design(name)]
 
 
-SCENE = (finite, unbiased, converges)
+def bias_shrinks(ctx, units, reference) -> list[Check]:
+    """An estimator biased by design: its rms bias at N = 256 directions is
+    below that at N = 16 by more than twice the standard error of the
+    difference (pass), above it by as much (fail), else inconclusive."""
+    out = []
+    for name, q in ctx.quadrature.items():
+        if not q.bias or len(q.bias) < 2:
+            continue
+        lo, hi = q.bias[0], q.bias[-1]
+        se = math.hypot(lo.rms_bias_se, hi.rms_bias_se)
+        text = (f"rms bias {lo.rms_bias:.2%} ± {lo.rms_bias_se:.2%} at N = {lo.directions}, "
+                f"{hi.rms_bias:.2%} ± {hi.rms_bias_se:.2%} at N = {hi.directions} "
+                f"(of the reference's rms)")
+        if lo.rms_bias - hi.rms_bias > 2 * se:
+            outcome = "pass"
+        elif hi.rms_bias - lo.rms_bias > 2 * se:
+            outcome, text = "fail", "the bias grows with N: " + text
+        else:
+            outcome, text = "inconclusive", "no difference K renders resolve: " + text
+        out.append(check(ctx, name, "bias_shrinks", outcome, text))
+    return out
+
+
+def calibrated(ctx, units, reference) -> list[Check]:
+    """The posterior std predicts the error: median measured RMSE over
+    predicted std within quadrature.CALIBRATED (pass); otherwise
+    inconclusive, naming the direction (a prior that does not fit the
+    lighting is a finding about the scene, not a broken estimator)."""
+    out = []
+    for name, q in ctx.quadrature.items():
+        c = q.calibration
+        if c is None:
+            continue
+        text = (f"{c.verdict}: measured RMSE / predicted std median {c.median:.2f} "
+                f"(quartiles {c.q25:.2f}–{c.q75:.2f}) over {c.pixels} pixel channels")
+        ok = c.verdict == "calibrated" or c.verdict.startswith("exact")
+        out.append(check(ctx, name, "calibrated", "pass" if ok else "inconclusive", text))
+    return out
+
+
+SCENE = (finite, unbiased, converges, bias_shrinks, calibrated)
 
 
 # ------------------------------ Failure cases ---------------------------------
 
+#: The verdict of an estimator biased by design whose bias the test found:
+#: reported with its numbers, not a failure (its bias is judged against N).
+BY_DESIGN = "biased (by design)"
+
+
 def case_verdict(row, pixels: int) -> str:
     """The verdict of one estimator's row in a failure case of ``pixels``
-    pixels (see the module doc)."""
+    pixels (see the module doc); an estimator biased by design gets
+    :data:`BY_DESIGN` where the others would get "biased"."""
+    verdict = _case_verdict(row, pixels)
+    return BY_DESIGN if verdict == "biased" and _by_design(row.name) else verdict
+
+
+def _case_verdict(row, pixels: int) -> str:
     if row.refused and row.numbers is None:
         return "refused"
     n = row.numbers
@@ -355,7 +419,7 @@ def describe(v: str, n) -> str:
     elif v == NOT_REPLICATED:
         text += (f"; {t.reason}; no rejection replicated in {n.seeds} fresh renders "
                  f"({t.rejected_pixels} px rejected, pooled p = {min(t.pooled_p):.3g})")
-    elif v == "biased" and n.sun is not None and not n.sun.sunless_passed:
+    elif v in ("biased", BY_DESIGN) and n.sun is not None and not n.sun.sunless_passed:
         text += f"; biased without the sun too: {n.sun.sunless_reason}; {n.sun.sunless_test}"
     elif t is not None:
         text += f"; {t.reason + ' — ' if t.reason else ''}{t.test}"

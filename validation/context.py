@@ -53,6 +53,7 @@ class Context:
     units: dict = field(default_factory=dict)         # render_*: spp → name → Unit
     reference: object = None        # build_reference: references.Reference
     measured: dict = field(default_factory=dict)      # measure: name → EstimatorResult
+    quadrature: dict = field(default_factory=dict)    # quadrature.measure: name → Quadrature
     rows: dict = field(default_factory=dict)          # tail_numbers …: name → CaseRow
     per_render: dict = field(default_factory=dict)    # tail_numbers: name → relMSE per seed
     sweep_rows: list = field(default_factory=list)    # sweep: SweepRow per estimator

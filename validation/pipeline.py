@@ -4,7 +4,9 @@ For every scene of a profile and every case of its failures group, a
 :class:`~.context.Context` goes through a list of stages (:mod:`.stages`):
 
     scene comparison   load → choose estimators → K renders per rung of an spp
-                       ladder → reference → statistics → checks → images; then
+                       ladder → reference → statistics → quadrature (estimators
+                       of N directions: equal rays, bias against N, calibration)
+                       → checks → images; then
                        the speed-and-images stage at the display resolution
                        (speed.py): cost model → equal-time renders → reference
                        → relMSE, efficiency, ranking, FLIP → images
@@ -31,12 +33,13 @@ from mcillum import files
 from mcillum.errors import Interrupted
 from mcillum.integrators import registry
 
-from . import profiles, renders, report, results, seeds, speed, stages, statistics
+from . import (profiles, quadrature, renders, report, results, seeds, speed, stages,
+               statistics)
 from .context import Context, Run
 from .progress import Progress
 
 SCENE = (stages.load, stages.choose_estimators, stages.render_ladder, stages.build_reference,
-         stages.measure, stages.judge_scene, stages.save_images)
+         stages.measure, quadrature.measure, stages.judge_scene, stages.save_images)
 SPEED = (speed.display, speed.time_costs, speed.render_budgets, speed.display_reference,
          speed.measure_speed, speed.save_display)
 CASE = (stages.load, stages.probe_refusals, stages.render_seeds, stages.build_reference,
@@ -56,8 +59,8 @@ def compare_scene(run: Run, plan: profiles.SceneRun, estimators,
                   speed_stage: bool = True) -> tuple[results.SceneResult, list[results.Check]]:
     """One scene of the profile: its result and its checks (and, unless
     ``speed_stage`` is False, its speed-and-images stage)."""
-    ctx = run_stages(SCENE, Context(run, plan, plan.scene, list(estimators),
-                                    dict(plan.defines), label=plan.scene))
+    ctx = run_stages(SCENE, Context(run, plan, plan.id, at_depth(estimators, plan),
+                                    dict(plan.defines), label=plan.id))
     if speed_stage and plan.display is not None and registry.REFERENCE in ctx.integrators:
         run_stages(SPEED, ctx)
     return stages.scene_result(ctx), ctx.checks
@@ -67,7 +70,8 @@ def failure_case(run: Run, plan: profiles.FailureCase,
                  estimators) -> tuple[results.CaseResult, list[results.Check]]:
     """One case of the failures group (a sweep: every point of it): its
     result and its checks."""
-    ctx = Context(run, plan, plan.id, list(estimators), dict(plan.defines), label=plan.id)
+    ctx = Context(run, plan, plan.id, at_depth(estimators, plan), dict(plan.defines),
+                  label=plan.id)
     if not plan.sweep:
         run_stages(CASE, ctx)
         return stages.case_result(ctx), ctx.checks
@@ -77,6 +81,13 @@ def failure_case(run: Run, plan: profiles.FailureCase,
     stages.sweep_rows(ctx, points)
     stages.judge_sweep(ctx)
     return stages.case_result(ctx), ctx.checks
+
+
+def at_depth(estimators, plan) -> list[str]:
+    """The estimators that define the plan's ``max_depth`` (those of N
+    directions per point estimate direct illumination only)."""
+    depths = (registry.facts(n).depths for n in estimators)
+    return [n for n, d in zip(estimators, depths) if d is None or plan.max_depth in d]
 
 
 def validate(profile_name: str = "quick", scene_names=None, estimators=None,
@@ -107,10 +118,13 @@ def validate(profile_name: str = "quick", scene_names=None, estimators=None,
         files.remove_stale_partials(d, recursive=True)
     json_path = os.path.join(out_dir, "results.json")
     before = _stamp(json_path)
-    total = sum(r.renders * len(estimators) * len(r.ladder) for r in plans) + \
-        sum(r.display.renders * len(estimators) * len(r.display.path_spp)
+    total = sum(r.renders * len(at_depth(estimators, r)) * len(r.ladder) +
+                quadrature.planned_renders(at_depth(estimators, r), r.renders)
+                for r in plans) + \
+        sum(r.display.renders * len(at_depth(estimators, r)) * len(r.display.path_spp)
             for r in plans if r.display and speed_stage) + \
-        sum(c.seeds * len(cases_estimators) * max(1, len(c.sweep[1]) if c.sweep else 1)
+        sum(c.seeds * len(at_depth(cases_estimators, c)) *
+            max(1, len(c.sweep[1]) if c.sweep else 1)
             for c in cases)
     bar = Progress(total, progress)
     run = Run(profile, variant, cache_dir, out_dir, bar)
@@ -152,7 +166,8 @@ def estimator_facts(names) -> dict[str, results.EstimatorInfo]:
     colours = registry.palette(names)
     return {n: results.EstimatorInfo(registry.facts(n).display_name, colours[n],
                                      list(registry.facts(n).unreachable),
-                                     registry.facts(n).max_direction_pdf) for n in names}
+                                     registry.facts(n).max_direction_pdf,
+                                     registry.facts(n).unbiased) for n in names}
 
 
 def _machine() -> dict:

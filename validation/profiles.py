@@ -43,6 +43,11 @@ class SceneRun:
     max_depth: int = -1
     defines: dict = field(default_factory=dict)
     display: Display | None = None
+    label: str = ""                # a second run of one scene needs its own
+
+    @property
+    def id(self) -> str:
+        return self.label or self.scene
 
 
 @dataclass(frozen=True)
@@ -107,9 +112,15 @@ QUICK = Profile("quick", (
     SceneRun("sky_sphere", 24, (4, 16, 64, 128), 12, display=Display(128)),
     SceneRun("probe_spheres", 8, (16, 64, 256, 1024), 16, display=Display(128)),
     SceneRun("cornell_box", 8, (32, 128, 512, 2048), 16, display=Display(128)),
+    # the quadrature estimators' own case: no occlusion, diffuse, smooth light
+    SceneRun("lone_sphere", 8, (4, 16, 64, 256), 8, max_depth=2, defines={"envmap": "sg"},
+             display=Display(128)),
 ), reference_max_spp=1 << 18, reference_max_seconds=30.0, failures=(
     # small bright sources: 64 seeds each, as the stability suite asks
     FailureCase("heavy_tail", "sun_sky", 8, 16, 64),
+    # ... and in direct light, where the estimators of N directions run too
+    *(FailureCase("heavy_tail", "lone_sphere", 8, 16, 64, {"envmap": m}, max_depth=2,
+                  label=f"lone_sphere_{m}") for m in ("sun_sky", "sunrise")),
     *(FailureCase("heavy_tail", "probe_spheres", 8, 16, 64, {"envmap": probe},
                   label=f"probe_spheres_{probe}") for probe in ("sunrise", "city", "interior")),
     FailureCase("unreachable", "point_light", 8, 16, 16, max_depth=2),
@@ -134,8 +145,15 @@ FULL = Profile("full", (
     SceneRun("cornell_box", 16, (16, 64, 256, 1024, 4096), 16, display=FULL_DISPLAY),
     SceneRun("phong_spheres", 32, (4, 16, 64, 256, 1024), 16, display=FULL_DISPLAY),
     SceneRun("glossy_phong", 32, (4, 16, 64, 256, 1024), 16, display=FULL_DISPLAY),
+    SceneRun("probe_spheres", 32, (4, 16, 64, 256), 16, max_depth=2, display=FULL_DISPLAY,
+             label="probe_spheres_direct"),
+    *(SceneRun("lone_sphere", 32, (4, 16, 64, 256), 16, max_depth=2, defines={"envmap": m},
+               display=FULL_DISPLAY, label=f"lone_sphere_{m}")
+      for m in ("sg", "gradient", "courtyard", "studio", "forest")),
 ), reference_max_spp=1 << 20, reference_max_seconds=600.0, failures=(
     FailureCase("heavy_tail", "sun_sky", 32, 16, 128),
+    *(FailureCase("heavy_tail", "lone_sphere", 32, 16, 128, {"envmap": m}, max_depth=2,
+                  label=f"lone_sphere_{m}") for m in ("sun_sky", "sunrise", "interior")),
     *(FailureCase("heavy_tail", "probe_spheres", 32, 16, 128, {"envmap": probe},
                   label=f"probe_spheres_{probe}") for probe in ("sunrise", "city", "interior")),
     FailureCase("unreachable", "point_light", 16, 64, 32, max_depth=2),

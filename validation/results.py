@@ -43,7 +43,9 @@ VERSION = 1
 #: convergence and failure-case test; ``seed_set``.
 #: 4: each ranking place holds the efficiency and interval it was ranked by;
 #: ``consistent_with_mc`` is false where no slope was fitted.
-MINOR_VERSION = 4
+#: 5: per scene ``quadrature`` (estimators of N directions: equal rays, bias
+#: against N, calibration of the posterior std); estimator facts ``unbiased``.
+MINOR_VERSION = 5
 SCHEMA_FILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results.schema.json")
 
 DEFINITIONS = {
@@ -273,6 +275,54 @@ class Speed:
 
 
 @dataclass
+class EqualRays:
+    """A point-set estimator against ``baseline`` at the same number of traced
+    directions per pixel (quadrature.py)."""
+
+    baseline: str
+    baseline_spp: int            # N · spp
+    relmse: float                # each less the reference's relative variance
+    baseline_relmse: float
+    ratio: float                 # relmse / baseline_relmse (< 1: the set wins)
+    ratio_low: float             # 95 % interval
+    ratio_high: float
+    seconds: float               # median per render
+    baseline_seconds: float
+
+
+@dataclass
+class BiasAtN:
+    directions: int
+    rms_bias: float              # noise-corrected rms over pixels, / rms of the reference
+    rms_bias_se: float
+    mean_bias: float             # signed, image mean, / the reference's image mean
+
+
+@dataclass
+class Calibration:
+    """Measured RMSE over predicted posterior std, per pixel."""
+
+    median: float
+    q25: float
+    q75: float
+    pixels: int
+    verdict: str                 # calibrated | over-confident | under-confident | exact …
+
+
+@dataclass
+class Quadrature:
+    """What the quadrature stage measured of one estimator of N directions."""
+
+    name: str
+    directions: int
+    spp: int
+    renders: int
+    equal_rays: EqualRays | None = _optional()
+    bias: list[BiasAtN] | None = _optional()
+    calibration: Calibration | None = _optional()
+
+
+@dataclass
 class SceneResult:
     name: str
     path: str
@@ -284,6 +334,7 @@ class SceneResult:
     reference: ReferenceSummary
     estimators: list[EstimatorResult]
     speed: Speed | None = _optional()
+    quadrature: list[Quadrature] | None = _optional()
 
 
 # ------------------------------ Failure cases ---------------------------------
@@ -425,6 +476,7 @@ class EstimatorInfo:
     colour: str
     unreachable: list[str]
     max_direction_pdf: float | None
+    unbiased: bool = True                  # False: biased by design (a quadrature)
 
 
 @dataclass
@@ -628,16 +680,20 @@ def summary(results: Results) -> str:
                   "|---|---|---|---|---|---|---|"]
         for est in scene.estimators:
             top, u, c = est.top, est.unbiasedness, est.convergence
+            facts = results.estimator_facts.get(est.name)
+            by_design = facts is not None and not facts.unbiased
             lines.append(
                 f"| {est.name} | {top.relmse:.3g} | {top.bias:+.2e} ± {top.bias_se:.1e} | "
-                f"{_word(u.outcome)} "
-                f"({100 * u.pass_fraction:.1f}) | "
+                + ("biased by design " if by_design else f"{_word(u.outcome)} ")
+                + f"({100 * u.pass_fraction:.1f}) | "
                 + ("exact" if c.exact else
-                   f"{_word(c.outcome)} {c.slope:+.2f} "
-                   f"[{c.low:+.2f}, {c.high:+.2f}]")
+                   ("not tested " if by_design else f"{_word(c.outcome)} ") +
+                   f"{c.slope:+.2f} [{c.low:+.2f}, {c.high:+.2f}]")
                 + f" | {top.samples_per_second / 1e6:.2f} M | {top.efficiency:.3g} |")
         if scene.speed:
             lines += ["", *speed_summary(scene.speed)]
+        for q in scene.quadrature or []:
+            lines += ["", quadrature_summary(q)]
         lines.append("")
     if results.failures:
         lines += ["## Where methods fail", "",
@@ -670,6 +726,22 @@ def ranking_text(ranking: list[Placement]) -> str:
             out += " = " if tied else " > "
         out += p.estimator
     return out
+
+
+def quadrature_summary(q: Quadrature) -> str:
+    """One line of what the quadrature stage measured of ``q.name``."""
+    parts = []
+    if q.equal_rays:
+        r = q.equal_rays
+        parts.append(f"relMSE {r.ratio:.3g}× {r.baseline}'s at equal rays "
+                     f"[{r.ratio_low:.3g}, {r.ratio_high:.3g}]")
+    if q.bias:
+        parts.append("rms bias " + ", ".join(f"{100 * b.rms_bias:.2f} % at N = {b.directions}"
+                                             for b in q.bias))
+    if q.calibration:
+        c = q.calibration
+        parts.append(f"posterior std {c.verdict} (RMSE/std median {c.median:.2f})")
+    return f"{q.name} (N = {q.directions}, {q.spp} spp): " + "; ".join(parts) + "."
 
 
 def speed_summary(speed: Speed) -> list[str]:

@@ -14,6 +14,8 @@ bench`, which used 0, 1, …, has its own stream now):
     speed            budget j, render i  →  500 000 + 10 000·j + i  (the speed stage's
                      equal-time renders at the display resolution; 9 budgets)
     speed_timing     590 000 + i         (its timed renders for the cost model)
+    quadrature       block b, render i  →  600 000 + 10 000·b + i  (quadrature.py: the
+                     point-set estimators at N = 16, default, 256 and cosine at N·spp)
     failure          700 000 + i         (K seeds per failure case)
     sunless          750 000 + i         (the same case on its map without the sun)
     replication      800 000 + i         (fresh renders that must repeat a rejection)
@@ -81,6 +83,7 @@ STREAMS = {
     "ladder": Layout(0, 10_000, blocks=50),
     "speed": Layout(500_000, 10_000, blocks=9),
     "speed_timing": Layout(590_000, 10_000),
+    "quadrature": Layout(600_000, 10_000, blocks=8),
     "failure": Layout(700_000, 50_000),
     "sunless": Layout(750_000, 50_000),
     "replication": Layout(800_000, 50_000),

@@ -46,9 +46,9 @@ def load(ctx) -> None:
 
 def choose_estimators(ctx) -> None:
     """The estimators asked for whose registry facts say they reach every
-    kind of content the scene header declares."""
+    kind of content the scene header declares (at the plan's max_depth)."""
     ctx.integrators = {n: renders.make_integrator(n, ctx.params) for n in ctx.estimators
-                       if registry.facts(n).renders(ctx.info.contains)}
+                       if registry.facts(n).renders(ctx.info.contains, ctx.max_depth)}
 
 
 def probe_refusals(ctx) -> None:
@@ -188,7 +188,7 @@ def scene_result(ctx) -> SceneResult:
     return SceneResult(
         ctx.id, os.path.relpath(info.path, os.getcwd()), describe(ctx), ctx.res, ctx.max_depth,
         list(ctx.plan.ladder), ctx.plan.renders, reference_summary(ctx.reference),
-        list(ctx.measured.values()), ctx.speed)
+        list(ctx.measured.values()), ctx.speed, list(ctx.quadrature.values()) or None)
 
 
 def reference_summary(ref) -> ReferenceSummary:

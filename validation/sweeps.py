@@ -33,6 +33,7 @@ class Unit:
     spp: int
     images: np.ndarray                      # (K, H, W, C) float32
     seconds: list[float] = field(default_factory=list)
+    aovs: dict = field(default_factory=dict)   # AOV group → (K, H, W, k) (renders.Render)
 
 
 def rotation(names: list, i: int) -> list:
@@ -50,14 +51,18 @@ def interleaved(scene, integrators: dict, spp: dict[str, int], k: int, seeds: li
     names = list(integrators)
     shots = {n: [] for n in names}
     times = {n: [] for n in names}
+    aovs = {n: {} for n in names}
     for i in range(k):
         for n in rotation(names, i):
             out = renders.render(scene, integrators[n], spp[n], seed=seeds[i])
             shots[n].append(out.image)
             times[n].append(out.seconds)
+            for group, layer in out.aovs.items():
+                aovs[n].setdefault(group, []).append(layer)
             if progress:
                 progress(f"{label} {n} {spp[n]} spp #{i + 1}/{k}")
-    return {n: Unit(n, spp[n], np.stack(shots[n]), times[n]) for n in names}
+    return {n: Unit(n, spp[n], np.stack(shots[n]), times[n],
+                    {g: np.stack(v) for g, v in aovs[n].items()}) for n in names}
 
 
 # ------------------------------- Kept renders -----------------------------------
@@ -81,7 +86,9 @@ def _load(path: str, key: str):
             if str(z["key"]) != key:
                 return None
             names = [str(n) for n in z["estimators"]]
-            units = {n: Unit(n, int(z["spp"][i]), z[f"images_{i}"], z[f"seconds_{i}"].tolist())
+            units = {n: Unit(n, int(z["spp"][i]), z[f"images_{i}"], z[f"seconds_{i}"].tolist(),
+                             {f[len(f"aov_{i}_"):]: z[f] for f in z.files
+                              if f.startswith(f"aov_{i}_")})
                      for i, n in enumerate(names)}
             return units, dict(zip(names, z["compile"].tolist()))
     except Exception:  # absent, partial or from another version: render anew
@@ -96,6 +103,8 @@ def _save(path: str, key: str, units: dict[str, Unit], compile_seconds: dict) ->
     for i, u in enumerate(units.values()):
         arrays[f"images_{i}"] = u.images
         arrays[f"seconds_{i}"] = np.array(u.seconds)
+        for group, layers in u.aovs.items():
+            arrays[f"aov_{i}_{group}"] = layers
     with files.atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             np.savez_compressed(f, **arrays)

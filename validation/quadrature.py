@@ -1,0 +1,162 @@
+"""The quadrature stage: what an estimator of N directions per shading point
+(fibonacci_hemisphere, bayesian_hemisphere; registry facts ``depths``) is
+measured on beyond the spp ladder, at the ladder's top rung and resolution.
+
+* **Equal rays.** K renders of N directions × spp camera samples against K
+  renders of ``cosine_hemisphere`` at N·spp spp: the ratio of their relMSE
+  (each less the reference's own relative variance), with a 95 % interval
+  from the spread of the per-render errors (delta method on the log).
+* **Bias against N** (estimators biased by design, facts ``unbiased``
+  False): at N = 16, the default and 256, the bias per pixel b = m − r of
+  the mean m of K renders, summarised as the noise-corrected rms over pixels
+  √(mean(b² − v/K − v_ref)) relative to the rms of the reference, ± its
+  standard error. It must shrink from N = 16 to 256 (a check).
+* **Calibration of the posterior standard deviation** (estimators that
+  write the ``posterior_std`` AOV): per pixel, the RMSE of the K renders
+  against the reference (less the reference's variance) over the predicted
+  std (rms over renders). Median and quartiles over pixels; **calibrated**
+  if the median lies within :data:`CALIBRATED` (errors within 1.5× of what
+  it predicts), **over-confident** above (errors larger than predicted),
+  **under-confident** below.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from mcillum.integrators import registry
+
+from . import metrics, renders, seeds, sweeps
+from .results import BiasAtN, Calibration, EqualRays, Quadrature
+
+#: The N of the bias-against-N measurement (the default N is added).
+BIAS_DIRECTIONS = (16, 256)
+#: Median RMSE / predicted std counted as calibrated.
+CALIBRATED = (2.0 / 3.0, 1.5)
+#: The Monte Carlo estimator the sets are compared with at equal rays.
+BASELINE = "cosine_hemisphere"
+
+
+def is_point_set(name: str) -> bool:
+    return registry.facts(name).depths is not None and name in registry.names()
+
+
+def planned_renders(names, k: int) -> int:
+    """Renders this stage makes for ``names`` at K renders each (for the
+    progress bar; estimators the scene refuses are counted too)."""
+    sets = [n for n in names if is_point_set(n)]
+    return k * sum(2 + (0 if registry.facts(n).unbiased else len(BIAS_DIRECTIONS))
+                   for n in sets)
+
+
+def measure(ctx) -> None:
+    """Per point-set estimator of the scene: ``ctx.quadrature[name]``."""
+    ctx.quadrature = {}
+    names = [n for n in ctx.integrators if is_point_set(n)]
+    if not names:
+        return
+    spp, k = ctx.plan.ladder[-1], ctx.plan.renders
+    ref = ctx.reference
+    for i, name in enumerate(names):
+        integrator = ctx.integrators[name]
+        n = integrator.directions
+        block = 2 * i
+        own = _renders(ctx, name, {}, spp, k, block)
+        baseline = (_renders(ctx, BASELINE, {}, spp * n, k, block + 1)
+                    if BASELINE in registry.names() else None)
+        rays = _equal_rays(own, baseline, ref, n, spp) if baseline is not None else None
+        bias, calibration = None, None
+        if not registry.facts(name).unbiased:
+            bias = [_bias(own, ref, n)]
+            for b, m in enumerate(BIAS_DIRECTIONS):
+                if m != n:
+                    other = _renders(ctx, name, {"directions": m}, spp, k, 2 * len(names) + b)
+                    bias.append(_bias(other, ref, m))
+            bias.sort(key=lambda row: row.directions)
+        if "posterior_std" in own.aovs:
+            calibration = _calibration(own, ref)
+        ctx.quadrature[name] = Quadrature(name, n, spp, k, rays, bias, calibration)
+
+
+def _renders(ctx, name, params, spp, k, block) -> sweeps.Unit:
+    """K renders (kept: a re-run loads them) from block ``block`` of the
+    quadrature seed stream."""
+    integrator = renders.make_integrator(name, {**ctx.params, **params})
+    tag = "-".join(f"{key}{value}" for key, value in sorted(params.items()))
+    return sweeps.kept(ctx, f"quadrature{block}-{name}", f"quadrature {tag}",
+                       {name: integrator}, {name: spp}, k,
+                       seeds.stream("quadrature", block).take(k), label=ctx.label)[name]
+
+
+def _relative_noise(ref) -> float:
+    """The reference's own contribution to a relMSE against it."""
+    r = np.asarray(ref.mean, np.float64)[..., :3]
+    return float(np.mean(np.asarray(ref.variance_of_mean)[..., :3] / (r ** 2 + metrics.EPSILON)))
+
+
+def _per_render_relmse(unit, ref) -> np.ndarray:
+    noise = _relative_noise(ref)
+    return np.array([metrics.relmse(x[..., :3], ref.mean[..., :3]) - noise for x in unit.images])
+
+
+def _equal_rays(own, baseline, ref, n, spp) -> EqualRays:
+    a, b = _per_render_relmse(own, ref), _per_render_relmse(baseline, ref)
+    ratio = float(a.mean() / b.mean()) if b.mean() > 0 else float("nan")
+    # delta method on log(ā / b̄): var ≈ s_a²/(K ā²) + s_b²/(K b̄²)
+    k = len(a)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = math.sqrt(a.var(ddof=1) / (k * a.mean() ** 2) + b.var(ddof=1) / (k * b.mean() ** 2))
+    low, high = (ratio * math.exp(-1.96 * s), ratio * math.exp(1.96 * s)) \
+        if np.isfinite(s) and ratio > 0 else (float("nan"), float("nan"))
+    seconds, seconds_b = float(np.median(own.seconds)), float(np.median(baseline.seconds))
+    return EqualRays(BASELINE, n * spp, float(a.mean()), float(b.mean()), ratio, low, high,
+                     seconds, seconds_b)
+
+
+def _bias(unit, ref, n) -> BiasAtN:
+    x = unit.images[..., :3].astype(np.float64)
+    k = len(x)
+    m, v = x.mean(axis=0), x.var(axis=0, ddof=1) / k
+    r = np.asarray(ref.mean, np.float64)[..., :3]
+    v_ref = np.asarray(ref.variance_of_mean, np.float64)[..., :3]
+    b = m - r
+    noise = v + v_ref
+    per_pixel = b ** 2 - noise                       # unbiased for the squared bias
+    squared = float(per_pixel.mean())
+    # se of that mean: Var(b̂²) ≈ 2 σ⁴ + 4 b² σ² per pixel-channel, σ² = noise
+    se_squared = float(np.sqrt(np.sum(2 * noise ** 2 + 4 * np.maximum(per_pixel, 0) * noise))
+                       / per_pixel.size)
+    scale = float(np.sqrt(np.mean(r ** 2)))
+    rms = math.sqrt(max(squared, 0.0))
+    # se of √(B) by the delta method, 1/(2√B); at B ≈ 0 the bound √se
+    se = se_squared / (2 * rms) if rms > 0 else math.sqrt(se_squared)
+    signed = float((b.mean()) / np.mean(r)) if np.mean(r) > 0 else float("nan")
+    return BiasAtN(n, rms / scale, se / scale, signed)
+
+
+def _calibration(unit, ref) -> Calibration:
+    x = unit.images[..., :3].astype(np.float64)
+    std = unit.aovs["posterior_std"][..., :3].astype(np.float64)
+    r = np.asarray(ref.mean, np.float64)[..., :3]
+    v_ref = np.asarray(ref.variance_of_mean, np.float64)[..., :3]
+    measured = np.sqrt(np.maximum(((x - r) ** 2).mean(axis=0) - v_ref, 0.0))
+    predicted = np.sqrt((std ** 2).mean(axis=0))
+    # pixels where both are 0 (exact) say nothing; a 0 prediction with an
+    # error is infinitely over-confident
+    keep = (predicted > 0) | (measured > 0)
+    with np.errstate(divide="ignore"):
+        ratio = np.where(predicted > 0, measured / np.where(predicted > 0, predicted, 1), np.inf)
+    ratio = ratio[keep]
+    if ratio.size == 0:
+        return Calibration(float("nan"), float("nan"), float("nan"), 0,
+                           "exact (no error and none predicted)")
+    q25, median, q75 = (float(q) for q in np.quantile(ratio, [0.25, 0.5, 0.75]))
+    if CALIBRATED[0] <= median <= CALIBRATED[1]:
+        verdict = "calibrated"
+    elif median > CALIBRATED[1]:
+        verdict = "over-confident"
+    else:
+        verdict = "under-confident"
+    return Calibration(median, q25, q75, int(ratio.size), verdict)
