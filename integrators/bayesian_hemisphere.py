@@ -11,7 +11,7 @@ import numpy as np
 
 from . import gp_quadrature, registry
 from .direction_set import DirectionSetEstimator
-from .fibonacci_hemisphere import GOLDEN, fibonacci_point, square_to_cosine_polar
+from .fibonacci_hemisphere import GOLDEN, MAPPINGS, fibonacci_point
 
 #: ℓ where the scene has no environment map to fit it to.
 DEFAULT_LENGTH_SCALE = 0.5
@@ -106,6 +106,11 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
      * - prior_mean
        - |string|
        - ``constant`` (the mean of the N samples) or ``zero``. (Default: ``constant``)
+     * - mapping
+       - |string|
+       - Where the nodes lie: ``cosine`` (cos θ = √(1 − u), denser near the
+         normal) or ``uniform`` (cos θ = 1 − u); the integral is against
+         cos θ/π either way. (Default: ``cosine``)
      * - max_depth
        - |int|
        - 2: direct illumination; 1: only emitters seen directly; others are
@@ -184,6 +189,10 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
         if self.prior_mean not in PRIOR_MEANS:
             raise ValueError(f"{self.plugin_name}: prior_mean must be one of "
                              f"{', '.join(PRIOR_MEANS)}, got {self.prior_mean!r}")
+        self.mapping = props.get("mapping", "cosine")
+        if self.mapping not in MAPPINGS:
+            raise ValueError(f"{self.plugin_name}: mapping must be one of "
+                             f"{', '.join(MAPPINGS)}, got {self.mapping!r}")
         self.length_scale = None if ell == "auto" else float(ell)
         self.length_scale_source = "given"
         if self.length_scale is not None:
@@ -201,7 +210,7 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
 
     def _use_table(self):
         self.table = gp_quadrature.weights(self.directions, self.length_scale, self.noise,
-                                           self.prior_mean)
+                                           self.prior_mean, self.mapping)
         a = [float(x) for x in self.table.weights]
         self._a = mi.Float(a) if dr.is_jit_v(mi.Float) else a
 
@@ -216,9 +225,9 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
         return (sampler.next_1d(active),)               # the turn about the normal
 
     def direction(self, j, drawn, si, bsdf, ctx, active):
-        w_up = square_to_cosine_polar(rotated_point(j, self.directions, drawn[0]))
+        w_up = MAPPINGS[self.mapping][0](rotated_point(j, self.directions, drawn[0]))
         wo = mi.Vector3f(w_up.x, w_up.y, dr.mulsign(w_up.z, si.wi.z))
-        p = w_up.z * dr.inv_pi                           # cos θ / π
+        p = w_up.z * dr.inv_pi              # the measure cos θ / π, whatever the mapping
         # f cos θ / p = ρ for a diffuse BSDF: the GP models L_i, ρ scales it
         f_cos = bsdf.eval(ctx, si, wo, active)
         factor = dr.select(p > 0, f_cos / dr.select(p > 0, p, 1.0), 0.0)
@@ -245,7 +254,7 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
     def to_string(self) -> str:
         return (f"BayesianHemisphereIntegrator[directions={self.directions}, "
                 f"length_scale={self.length_scale_param}, noise={self.noise}, "
-                f"prior_mean={self.prior_mean}]")
+                f"prior_mean={self.prior_mean}, mapping={self.mapping}]")
 
 
 registry.register(BayesianHemisphereIntegrator)

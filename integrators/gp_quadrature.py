@@ -141,10 +141,23 @@ def _check(n: int, length_scale: float, noise: float, prior_mean: str) -> None:
                          f"{PRIOR_MEANS}, got {prior_mean!r}")
 
 
+def uniform_directions(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """The area-preserving map to the hemisphere, (n, 3): cos θ = 1 − u, φ = 2π v."""
+    cos_t = 1.0 - np.asarray(u, dtype=np.float64)
+    sin_t = np.sqrt(np.maximum(0.0, 1.0 - cos_t ** 2))
+    phi = 2 * np.pi * np.asarray(v, dtype=np.float64)
+    return np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t], axis=-1)
+
+
+#: How the Fibonacci square is mapped to the nodes (the measure stays cos θ/π).
+MAPPINGS = {"cosine": cosine_directions, "uniform": uniform_directions}
+
+
 @functools.lru_cache(maxsize=64)
 def weights(n: int, length_scale: float, noise: float,
-            prior_mean: str = "constant") -> Weights:
-    """BMC weights for ``cosine_directions(*fibonacci_square(n))``.
+            prior_mean: str = "constant", mapping: str = "cosine") -> Weights:
+    """BMC weights for the nodes ``MAPPINGS[mapping](*fibonacci_square(n))``
+    (the integral is always against p = cos θ/π).
 
     If cond₂(K̃ + noise·I) > MAX_CONDITION the noise of the solve is raised
     tenfold (from max(noise, 1e-12)) until it is not, with a warning; the
@@ -153,7 +166,10 @@ def weights(n: int, length_scale: float, noise: float,
     """
     _check(n, length_scale, noise, prior_mean)
     n, length_scale, noise = int(n), float(length_scale), float(noise)
-    dirs = cosine_directions(*fibonacci_square(n))
+    if mapping not in MAPPINGS:
+        raise ValueError(f"bayesian_hemisphere: mapping must be one of {', '.join(MAPPINGS)}, "
+                         f"got {mapping!r}")
+    dirs = MAPPINGS[mapping](*fibonacci_square(n))
     K = kernel_matrix(dirs, dirs, length_scale)
     eig = np.linalg.eigvalsh(K)
 

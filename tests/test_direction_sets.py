@@ -64,6 +64,21 @@ def test_loads_from_xml_and_python_and_is_exact_in_a_furnace(use_variant, varian
         np.testing.assert_allclose(image, np.broadcast_to(expected, image.shape), rtol=2e-5)
 
 
+@pytest.mark.parametrize("mapping", ["cosine", "uniform"])
+def test_bayesian_nodes_of_either_mapping_are_exact_in_a_furnace(llvm, mapping):
+    """Whatever the nodes' mapping, the weights integrate against cos θ/π:
+    ρL exactly (a weight applied with the nodes' density instead of the
+    measure would be off by a factor that varies with θ)."""
+    scene = lone_sphere(8)
+    expected = np.array([0.8, 0.6, 0.4]) * environment_radiance(scene)
+    integ = renders.make_integrator("bayesian_hemisphere", {
+        "directions": 16, "length_scale": 0.5, "mapping": mapping, "prior_mean": "zero"})
+    from mcillum.integrators import gp_quadrature as gq
+    total = gq.weights(16, 0.5, 1e-3, "zero", mapping).weights.sum()
+    image = renders.render(scene, integ, 2).image
+    np.testing.assert_allclose(image, np.broadcast_to(total * expected, image.shape), rtol=2e-5)
+
+
 def test_zero_prior_mean_darkens_by_the_weight_sum(llvm):
     """The zero mean pulls every estimate towards 0 by exactly Σ Q⁻¹z < 1
     (the constant mean removes it); the posterior variance is 0 with the
@@ -116,6 +131,7 @@ def test_depth_one_shows_only_what_the_camera_sees(llvm, name):
     ({"type": "bayesian_hemisphere", "length_scale": "wide"}, "length_scale must be"),
     ({"type": "bayesian_hemisphere", "noise": -1.0}, "noise must be a number >= 0"),
     ({"type": "bayesian_hemisphere", "prior_mean": "median"}, "prior_mean must be one of"),
+    ({"type": "bayesian_hemisphere", "mapping": "spiral"}, "mapping must be one of"),
 ])
 def test_bad_parameters_are_refused(llvm, props, match):
     with pytest.raises((ValueError, RuntimeError), match=match):
