@@ -119,8 +119,10 @@ QUICK = Profile("quick", (
     # small bright sources: 64 seeds each, as the stability suite asks
     FailureCase("heavy_tail", "sun_sky", 8, 16, 64),
     # ... and in direct light, where the estimators of N directions run too
-    *(FailureCase("heavy_tail", "lone_sphere", 8, 16, 64, {"envmap": m}, max_depth=2,
-                  label=f"lone_sphere_{m}") for m in ("sun_sky", "sunrise")),
+    # (sun_sky's 0.0002 sr sun only in full: at 8² × 16 spp × 64 seeds cosine
+    # is expected to hit it about once, and its bound of 4 read "biased")
+    FailureCase("heavy_tail", "lone_sphere", 8, 16, 64, {"envmap": "sunrise"}, max_depth=2,
+                label="lone_sphere_sunrise"),
     *(FailureCase("heavy_tail", "probe_spheres", 8, 16, 64, {"envmap": probe},
                   label=f"probe_spheres_{probe}") for probe in ("sunrise", "city", "interior")),
     FailureCase("unreachable", "point_light", 8, 16, 16, max_depth=2),
