@@ -50,6 +50,7 @@ def environment_samples(scene, m: int = FIT_SAMPLES):
     if dr.is_jit_v(mi.Float):
         si = dr.zeros(mi.SurfaceInteraction3f, m)
         si.wi = -mi.Vector3f(d[:, 0], d[:, 1], d[:, 2])
+        si.wavelengths = _visible(si.wavelengths)
         values = np.array(env.eval(si), dtype=float)    # (channels, m), or (channels,)
         values = np.broadcast_to(values.reshape(values.shape[0], -1), (values.shape[0], m)).T
     else:
@@ -57,9 +58,19 @@ def environment_samples(scene, m: int = FIT_SAMPLES):
         for x, y, z in d:
             si = dr.zeros(mi.SurfaceInteraction3f)
             si.wi = -mi.Vector3f(x, y, z)
+            si.wavelengths = _visible(si.wavelengths)
             values.append(np.array(env.eval(si), dtype=float).ravel())
         values = np.array(values)
     return d, values.reshape(m, -1).mean(axis=1)
+
+
+def _visible(wavelengths):
+    """Wavelengths across the visible range (spectral variants evaluate the
+    map at these; RGB and mono variants ignore them)."""
+    if not mi.is_spectral:
+        return wavelengths
+    return type(wavelengths)(*(mi.Float(450.0 + 200.0 * i / (len(wavelengths) - 1))
+                               for i in range(len(wavelengths))))
 
 
 _fitted: dict[str, float] = {}
@@ -72,6 +83,8 @@ def fit_length_scale(scene, noise: float) -> tuple[float, str]:
     if samples is None:
         return DEFAULT_LENGTH_SCALE, "default (no environment map)"
     d, y = samples
+    if np.ptp(y) <= 1e-6 * max(float(np.abs(y).max()), 1e-30):    # (float32 texels)
+        return DEFAULT_LENGTH_SCALE, "default (the environment is constant: nothing to fit)"
     key = hashlib.sha1(np.ascontiguousarray(y, np.float64).tobytes() +
                        repr(noise).encode()).hexdigest()
     if key not in _fitted:
@@ -193,6 +206,10 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
         if self.mapping not in MAPPINGS:
             raise ValueError(f"{self.plugin_name}: mapping must be one of "
                              f"{', '.join(MAPPINGS)}, got {self.mapping!r}")
+        if self.prior_mean == "constant" and self.directions < 2:
+            raise ValueError(f"{self.plugin_name}: directions = {self.directions} with "
+                             "prior_mean 'constant' leaves nothing to estimate the prior "
+                             "variance from; use directions >= 2 or prior_mean 'zero'")
         self.length_scale = None if ell == "auto" else float(ell)
         self.length_scale_source = "given"
         if self.length_scale is not None:

@@ -188,7 +188,10 @@ class FibonacciHemisphereIntegrator(DirectionSetEstimator):
         ctx_b = glossy_context()
         lobe = frac(shift_c + (mi.Float(index) + 0.5) / dr.maximum(mi.Float(size), 1.0))
         bs, _ = bsdf.sample(ctx_b, si, lobe, u, active & (j >= n_a))
-        wo = dr.select(in_a, wo_a, bs.wo)
+        # (a failed glossy sample adds 0; it is traced along wo_a, a valid
+        # direction, so that no lookup sees a zero vector)
+        kept = in_a | (bs.pdf > 0)
+        wo = dr.select(in_a | (bs.pdf <= 0), wo_a, bs.wo)
 
         # Balance heuristic over both sets: f cos / (N_a p_a + N_b p_b)
         p_a = self.pdf_local(mi.Vector3f(wo.x, wo.y, dr.mulsign(wo.z, si.wi.z)))
@@ -196,7 +199,7 @@ class FibonacciHemisphereIntegrator(DirectionSetEstimator):
         denom = mi.Float(n_a) * p_a + mi.Float(n_b) * p_b
         f_cos = bsdf.eval(ctx, si, wo, active)             # bsdf.eval includes cos θ
         # (select the divisor too: scalar variants divide Python floats, which raise)
-        factor = dr.select(denom > 0, f_cos / dr.select(denom > 0, denom, 1.0), 0.0)
+        factor = dr.select(kept & (denom > 0), f_cos / dr.select(denom > 0, denom, 1.0), 0.0)
         return wo, factor, 1.0
 
     def to_string(self) -> str:

@@ -8,7 +8,8 @@ measured on beyond the spp ladder, at the ladder's top rung and resolution.
   from the spread of the per-render errors (delta method on the log).
 * **Bias against N** (estimators biased by design, facts ``unbiased``
   False): at N = 16, the default and 256, the bias per pixel b = m − r of
-  the mean m of K renders, summarised as the noise-corrected rms over pixels
+  the mean m of K renders (of the channel mean: the channels share their
+  directions), summarised as the noise-corrected rms over pixels
   √(mean(b² − v/K − v_ref)) relative to the rms of the reference, ± its
   standard error. It must shrink from N = 16 to 256 (a check).
 * **Calibration of the posterior standard deviation** (estimators that
@@ -116,11 +117,14 @@ def _equal_rays(own, baseline, ref, n, spp) -> EqualRays:
 
 
 def _bias(unit, ref, n) -> BiasAtN:
-    x = unit.images[..., :3].astype(np.float64)
+    # per pixel, the mean over channels: R, G and B come from the same
+    # directions, so they are not independent evidence
+    x = unit.images[..., :3].astype(np.float64).mean(axis=-1)
     k = len(x)
     m, v = x.mean(axis=0), x.var(axis=0, ddof=1) / k
-    r = np.asarray(ref.mean, np.float64)[..., :3]
-    v_ref = np.asarray(ref.variance_of_mean, np.float64)[..., :3]
+    r = np.asarray(ref.mean, np.float64)[..., :3].mean(axis=-1)
+    # (the mean of the channel variances: at least the channel mean's, so conservative)
+    v_ref = np.asarray(ref.variance_of_mean, np.float64)[..., :3].mean(axis=-1)
     b = m - r
     noise = v + v_ref
     per_pixel = b ** 2 - noise                       # unbiased for the squared bias

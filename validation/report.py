@@ -317,6 +317,7 @@ contributions: fireflies).</p>
 VERDICT_CLASS = {"fine": "ok", "heavy-tailed": "warn", checks.HEAVY: "warn",
                  checks.NOT_REPLICATED: "warn", "K too small to tell": "warn",
                  "refused": "ok", "biased (opt-in)": "warn", "biased": "bad",
+                 checks.BY_DESIGN: "warn",
                  "non-finite/negative": "bad"}
 
 

@@ -291,14 +291,17 @@ def split_sun(ctx) -> None:
         test = _replicated_test(sub, name, sub.units[ctx.plan.spp][name].images, decide)
         ctx.rows[name].numbers.sun = SunSplit(
             facts, not (test.outcome == "fail" and test.replicated), test.test,
-            sunless_mean, expected_sun_hits(name, samples, facts["solid_angle"]),
+            sunless_mean, expected_sun_hits(
+                name, samples * getattr(ctx.integrators[name], "directions", 1),
+                facts["solid_angle"]),
             1.0 - sunless_mean / image_mean, test.outcome, test.reason)
 
 
 def expected_sun_hits(name: str, samples: int, solid_angle: float) -> float | None:
     """Direct hits on a sun of ``solid_angle`` that estimator ``name`` expects
-    in ``samples`` samples of a pixel, at most N·Ω·max p (None: unbounded,
-    its registry facts give no largest pdf)."""
+    in ``samples`` directions traced from a pixel (camera samples × the
+    directions per sample of a point-set estimator), at most N·Ω·max p
+    (None: unbounded, its registry facts give no largest pdf)."""
     pdf = registry.facts(name).max_direction_pdf
     return None if pdf is None else samples * solid_angle * pdf
 
