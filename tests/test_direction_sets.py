@@ -305,3 +305,28 @@ def test_bayesian_bias_shrinks_with_n(llvm):
         rows[n] = quadrature._bias(_unit(batch(scene, integ, 16, 8)), ref, n)
     lo, hi = rows[16], rows[256]
     assert lo.rms_bias - hi.rms_bias > 3 * np.hypot(lo.rms_bias_se, hi.rms_bias_se), rows
+
+
+def test_fibonacci_glossy_set_lowers_the_variance(llvm):
+    """The glossy set is there for a reason: with N_b = 0 (every direction
+    from the diffuse set; unbiased too) the Phong spheres' per-pixel
+    variance, averaged over 16² px from 16 renders, is higher. Measured: the
+    split has 0.53× the variance; asserted: below 0.75× (the estimate of a
+    mean over 256 pixels × 15 dof moves by a few % between seed sets)."""
+    cls = twins.plugin_class("fibonacci_hemisphere")
+
+    class NoGlossySet(cls):
+        plugin_name = "fibonacci_no_glossy_set"
+
+        def draw_set(self, sampler, si, bsdf, ctx, active):
+            a, b, c, _ = super().draw_set(sampler, si, bsdf, ctx, active)
+            return a, b, c, mi.UInt32(0)
+
+    mi.register_integrator(NoGlossySet.plugin_name, lambda props: NoGlossySet(props))
+    scene = renders.load_scene(scenes.path("phong_spheres"), res=16)
+    variance = {}
+    for name in ("fibonacci_hemisphere", NoGlossySet.plugin_name):
+        stack = batch(scene, renders.make_integrator(name, {"directions": 16}), 4, 16)
+        variance[name] = stack.var(axis=0, ddof=1).mean()
+    ratio = variance["fibonacci_hemisphere"] / variance[NoGlossySet.plugin_name]
+    assert ratio < 0.75, variance
