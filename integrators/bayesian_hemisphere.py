@@ -156,12 +156,15 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
     the prior variance estimated from the N samples by moments; it is
     written as the AOV ``posterior_var`` (per channel; one ``Y`` channel in
     mono and spectral variants), which the film averages over the pixel's
-    camera samples. Its square root is the pixel's error bar
-    (``mcillum render`` stores it as the EXR layer ``posterior_std``): not
-    divided by √spp, because the samples of one pixel integrate nearly the
-    same lighting, and a quadrature's errors there are correlated, not
-    independent. How well it predicts the error is measured per scene
-    (``calibrated`` in the validation report).
+    camera samples, beside ``sample_sq``, the film's mean of L². The pixel's
+    error bar (``mcillum render`` stores it as the EXR layer
+    ``posterior_std``) is √(posterior_var + s²/spp), s² = spp/(spp − 1) ·
+    (mean L² − (mean L)²) the spread of its camera samples: the posterior
+    variance is not divided by spp, because the samples of one pixel
+    integrate nearly the same lighting and a quadrature's errors there are
+    correlated; the footprint of the pixel (and the turn of each sample's
+    set) adds the independent part. How well it predicts the error is
+    measured per scene (``calibrated`` in the validation report).
 
     Only diffuse BSDFs: a scene with a glossy lobe is refused with the
     object named (use ``fibonacci_hemisphere``, which splits its directions
@@ -265,8 +268,20 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
             found = [dr.mean(var)]
         return total, found
 
+    def finish_aovs(self) -> int:
+        return 3 if mi.is_rgb else 1
+
+    def sample_aovs(self, L, aovs):
+        # L² as well: with the film's mean of L it gives the spread of the
+        # pixel's camera samples (footprint, turn), the part of a pixel's
+        # error that averages down with spp
+        if dr.hint(mi.is_rgb, mode='scalar'):
+            return [*aovs, dr.square(L[0]), dr.square(L[1]), dr.square(L[2])]
+        return [*aovs, dr.square(dr.mean(L))]
+
     def aov_names(self):
-        return [f"posterior_var.{c}" for c in ("RGB" if mi.is_rgb else "Y")]
+        channels = "RGB" if mi.is_rgb else "Y"
+        return [f"posterior_var.{c}" for c in channels] + [f"sample_sq.{c}" for c in channels]
 
     def to_string(self) -> str:
         return (f"BayesianHemisphereIntegrator[directions={self.directions}, "

@@ -108,6 +108,15 @@ class DirectionSetEstimator(IlluminationEstimator):
         Y_j = factor_j · L_j and d_j = Y_j − Y_0."""
         return total, []
 
+    def finish_aovs(self) -> int:
+        """How many AOV values :meth:`finish` returns."""
+        return 0
+
+    def sample_aovs(self, L, aovs):
+        """The AOV values of a camera sample whose radiance is ``L`` (default:
+        those :meth:`finish` gave)."""
+        return aovs
+
     def aov_names(self):
         return []
 
@@ -119,7 +128,7 @@ class DirectionSetEstimator(IlluminationEstimator):
         ctx = mi.BSDFContext()
         ray = mi.Ray3f(ray)
         active = mi.Bool(active)
-        n_aovs = len(self.aov_names())
+        n_aovs = self.finish_aovs()
 
         # The environment counts as "hit" (alpha = 1) unless it is hidden.
         valid_ray = mi.Bool((not self.hide_emitters) and
@@ -176,7 +185,8 @@ class DirectionSetEstimator(IlluminationEstimator):
             L += L_r
             aovs = list(found)
 
-        return dr.select(valid_ray, L, 0), valid_ray, aovs
+        L = dr.select(valid_ray, L, 0)
+        return L, valid_ray, self.sample_aovs(L, aovs)
 
     def to_string(self) -> str:
         return (f"{type(self).__name__}[directions={self.directions}, max_depth="

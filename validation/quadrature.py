@@ -36,6 +36,8 @@ from .results import BiasAtN, Calibration, EqualRays, Quadrature
 BIAS_DIRECTIONS = (16, 256)
 #: Median RMSE / predicted std counted as calibrated.
 CALIBRATED = (2.0 / 3.0, 1.5)
+#: Errors below this share of the reference count as exact (float32 renders).
+EXACT = 1e-5
 #: The Monte Carlo estimator the sets are compared with at equal rays.
 BASELINE = "cosine_hemisphere"
 
@@ -147,9 +149,10 @@ def _calibration(unit, ref) -> Calibration:
     v_ref = np.asarray(ref.variance_of_mean, np.float64)[..., :3]
     measured = np.sqrt(np.maximum(((x - r) ** 2).mean(axis=0) - v_ref, 0.0))
     predicted = np.sqrt((std ** 2).mean(axis=0))
-    # pixels where both are 0 (exact) say nothing; a 0 prediction with an
-    # error is infinitely over-confident
-    keep = (predicted > 0) | (measured > 0)
+    # pixels where both are at float precision (exact) say nothing; a 0
+    # prediction with an error is infinitely over-confident
+    floor = EXACT * np.abs(r)
+    keep = (predicted > floor) | (measured > floor)
     with np.errstate(divide="ignore"):
         ratio = np.where(predicted > 0, measured / np.where(predicted > 0, predicted, 1), np.inf)
     ratio = ratio[keep]

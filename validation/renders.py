@@ -188,14 +188,16 @@ class Render:
     seed: int
     meta: dict = field(default_factory=dict)
     #: The integrator's AOVs by group ("posterior_var.R" → "posterior_var"),
-    #: each (H, W, k); a ``posterior_var`` (bayesian_hemisphere's, the mean
-    #: over the pixel's camera samples) also gives ``posterior_std`` = √var.
+    #: each (H, W, k); bayesian_hemisphere's ``posterior_var`` and
+    #: ``sample_sq`` also give ``posterior_std``, each pixel's error bar.
     aovs: dict = field(default_factory=dict)
 
 
-def split_aovs(image: np.ndarray, names) -> tuple[np.ndarray, dict]:
-    """(radiance channels, AOV groups) of a developed film whose last
-    ``len(names)`` channels are the integrator's AOVs ``names``."""
+def split_aovs(image: np.ndarray, names, spp: int = 1) -> tuple[np.ndarray, dict]:
+    """(radiance channels, AOV groups) of a developed film of ``spp``
+    samples whose last ``len(names)`` channels are the integrator's AOVs
+    ``names``; bayesian_hemisphere's give ``posterior_std`` (see its
+    docstring)."""
     names = list(names)
     if not names:
         return image, {}
@@ -204,9 +206,18 @@ def split_aovs(image: np.ndarray, names) -> tuple[np.ndarray, dict]:
     for i, name in enumerate(names):
         groups.setdefault(name.split(".")[0], []).append(first + i)
     aovs = {g: image[..., idx] for g, idx in groups.items()}
+    radiance = image[..., :first]
     if "posterior_var" in aovs:
-        aovs["posterior_std"] = np.sqrt(np.maximum(aovs["posterior_var"], 0))
-    return image[..., :first], aovs
+        var = np.maximum(aovs["posterior_var"], 0)
+        if "sample_sq" in aovs and spp > 1:
+            mean = radiance[..., :3] if aovs["sample_sq"].shape[-1] == 3 else \
+                radiance[..., :3].mean(axis=-1, keepdims=True)
+            spread = aovs["sample_sq"] - np.square(mean)
+            # (a spread below 1e-5 of the mean square is float32 cancellation)
+            spread = np.where(spread > 1e-5 * aovs["sample_sq"], spread, 0) * spp / (spp - 1)
+            var = var + spread / spp
+        aovs["posterior_std"] = np.sqrt(var)
+    return radiance, aovs
 
 
 def render(scene: mi.Scene, integrator: mi.Integrator, spp: int, seed: int = 0) -> Render:
@@ -222,7 +233,7 @@ def render(scene: mi.Scene, integrator: mi.Integrator, spp: int, seed: int = 0) 
         plan, seed, lambda s, n: mi.render(scene, integrator=integrator, spp=n, seed=s))
     dr.sync_thread()
     seconds = time.perf_counter() - start
-    image, aovs = split_aovs(np.array(image, dtype=np.float32), integrator.aov_names())
+    image, aovs = split_aovs(np.array(image, dtype=np.float32), integrator.aov_names(), spp)
     return Render(image, seconds, spp, seed, {"passes": len(plan)} if len(plan) > 1 else {},
                   aovs)
 
@@ -260,6 +271,6 @@ def save(path: str, result: Render, meta: dict, exposure: float = 0.0) -> str:
     png = preview_path(path)
     files.write_exr(path, result.image, meta,
                     {k: v for k, v in result.aovs.items()
-                     if k != "posterior_var" and v.shape[-1] in (1, 3, 4)})
+                     if k not in ("posterior_var", "sample_sq") and v.shape[-1] in (1, 3, 4)})
     images.write_png(png, result.image, exposure)
     return png
