@@ -130,21 +130,9 @@ class DirectionSetEstimator(IlluminationEstimator):
         active = mi.Bool(active)
         n_aovs = self.finish_aovs()
 
-        # The environment counts as "hit" (alpha = 1) unless it is hidden.
-        valid_ray = mi.Bool((not self.hide_emitters) and
-                            (scene.environment() is not None))
+        # ------------------ Camera ray (emitters hidden) ------------------
 
-        pi = scene.ray_intersect_preliminary(ray, coherent=True, active=active)
-
-        # ---------------------- Hide area emitters -----------------------
-
-        if dr.hint(self.hide_emitters, mode='scalar'):
-            # As `path` does: look through directly visible area emitters.
-            si0 = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, active)
-            skip = active & si0.is_valid() & (si0.emitter(scene) != None)
-            pi_behind = self.skip_area_emitters(scene, si0.spawn_ray(ray.d), True, skip)
-            pi = dr.select(skip, pi_behind, pi)
-
+        pi, valid_ray = self.camera_hit(scene, ray, active)
         si = pi.compute_surface_interaction(ray, mi.RayFlags.All)
 
         # ------------------ Emission seen by the camera -------------------

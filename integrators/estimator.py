@@ -267,20 +267,9 @@ class IlluminationEstimator(mi.SamplingIntegrator):
         depth = mi.UInt32(0)               # index of the current vertex
         active = mi.Bool(active)
 
-        # The environment counts as "hit" (alpha = 1) unless it is hidden.
-        valid_ray = mi.Bool((not self.hide_emitters) and
-                            (scene.environment() is not None))
+        # ------------------ Camera ray (emitters hidden) ------------------
 
-        pi = scene.ray_intersect_preliminary(ray, coherent=True, active=active)
-
-        # ---------------------- Hide area emitters -----------------------
-
-        if dr.hint(self.hide_emitters, mode='scalar'):
-            # As `path` does: look through directly visible area emitters.
-            si0 = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, active)
-            skip = active & si0.is_valid() & (si0.emitter(scene) != None)
-            pi_behind = self.skip_area_emitters(scene, si0.spawn_ray(ray.d), True, skip)
-            pi = dr.select(skip, pi_behind, pi)
+        pi, valid_ray = self.camera_hit(scene, ray, active)
 
         # Previous vertex, for MIS weights of emitter hits
         prev_si = dr.zeros(mi.Interaction3f)
@@ -343,6 +332,20 @@ class IlluminationEstimator(mi.SamplingIntegrator):
             pi = scene.ray_intersect_preliminary(ray, coherent=False, active=active)
 
         return dr.select(valid_ray, L, 0), valid_ray, []
+
+    def camera_hit(self, scene, ray, active):
+        """(preliminary intersection of the camera ray, valid_ray): the
+        environment counts as "hit" (alpha = 1) unless emitters are hidden;
+        with ``hide_emitters``, as `path` does, the ray looks through
+        directly visible area emitters."""
+        valid_ray = mi.Bool((not self.hide_emitters) and (scene.environment() is not None))
+        pi = scene.ray_intersect_preliminary(ray, coherent=True, active=active)
+        if self.hide_emitters:
+            si0 = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, active)
+            skip = active & si0.is_valid() & (si0.emitter(scene) != None)  # noqa: E711
+            pi_behind = self.skip_area_emitters(scene, si0.spawn_ray(ray.d), True, skip)
+            pi = dr.select(skip, pi_behind, pi)
+        return pi, valid_ray
 
     # ------------------------ NEE and MIS helpers ------------------------
 
