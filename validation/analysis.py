@@ -32,7 +32,7 @@ def run_stats(unit, reference) -> RunStats:
     b, se = metrics.bias(x, r, reference.image_mean_se)
     med = float(np.median(unit.seconds))
     pixels = x.shape[1] * x.shape[2]
-    ref_noise = float(np.mean(reference.variance_of_mean[..., :3] / (r ** 2 + metrics.EPSILON)))
+    ref_noise = metrics.reference_relmse(r, reference.variance_of_mean)
     return RunStats(
         unit.spp, x.shape[0], rel, per, float(np.mean([metrics.mse(i, r) for i in x])),
         float(np.mean([metrics.mape(i, r) for i in x])), b, se,

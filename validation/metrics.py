@@ -42,6 +42,13 @@ def relmse(x, r, eps: float = EPSILON) -> float:
     return float(np.mean((_finite(x) - r) ** 2 / (r ** 2 + eps)))
 
 
+def reference_relmse(r, variance_of_mean, eps: float = EPSILON) -> float:
+    """What a reference's own noise adds to a relMSE against it: the mean of
+    its variance of the mean over (r² + ε), RGB channels."""
+    r = np.asarray(r, np.float64)[..., :3]
+    return float(np.mean(np.asarray(variance_of_mean, np.float64)[..., :3] / (r ** 2 + eps)))
+
+
 def mape(x, r, eps: float = EPSILON) -> float:
     r = np.asarray(r, np.float64)
     return float(np.mean(np.abs(_finite(x) - r) / (np.abs(r) + eps)))

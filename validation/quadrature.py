@@ -95,14 +95,8 @@ def _renders(ctx, name, params, spp, k, block) -> sweeps.Unit:
                        seeds.stream("quadrature", block).take(k), label=ctx.label)[name]
 
 
-def _relative_noise(ref) -> float:
-    """The reference's own contribution to a relMSE against it."""
-    r = np.asarray(ref.mean, np.float64)[..., :3]
-    return float(np.mean(np.asarray(ref.variance_of_mean)[..., :3] / (r ** 2 + metrics.EPSILON)))
-
-
 def _per_render_relmse(unit, ref) -> np.ndarray:
-    noise = _relative_noise(ref)
+    noise = metrics.reference_relmse(ref.mean, ref.variance_of_mean)
     return np.array([metrics.relmse(x[..., :3], ref.mean[..., :3]) - noise for x in unit.images])
 
 

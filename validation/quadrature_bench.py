@@ -37,7 +37,7 @@ from . import metrics, renders, scenes
 
 def relmse_stack(images, ref_mean, ref_var) -> tuple[float, float]:
     """(mean relMSE over renders less the reference's relative variance, its se)."""
-    noise = float(np.mean(ref_var / (ref_mean ** 2 + metrics.EPSILON)))
+    noise = metrics.reference_relmse(ref_mean, ref_var)
     values = np.array([metrics.relmse(x, ref_mean) - noise for x in images])
     return float(values.mean()), float(values.std(ddof=1) / np.sqrt(len(values)))
 

@@ -159,7 +159,7 @@ def measure_speed(ctx) -> None:
     sub, d = ctx.display, ctx.plan.display
     ref = sub.reference
     r = ref.mean[..., :3]
-    ref_share = float(np.mean(ref.variance_of_mean[..., :3] / (r ** 2 + metrics.EPSILON)))
+    ref_share = metrics.reference_relmse(r, ref.variance_of_mean)
     budgets = []
     for (budget, path_spp), units in zip(ctx.budgets, ctx.budget_units):
         runs = {n: _budget_run(ctx, n, u, budget, r) for n, u in units.items()}
