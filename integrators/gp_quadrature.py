@@ -272,3 +272,22 @@ def fit(directions: np.ndarray, values: np.ndarray, noise: float = 1e-3,
         if res.success and -res.fun > ll[i]:
             best = float(np.exp(res.x))
     return Fit(best, log_marginal_likelihood(directions, values, best, noise)[1], g, ll)
+
+
+def pixel_std(posterior_var: np.ndarray, sample_sq: np.ndarray | None, mean: np.ndarray,
+              spp: int) -> np.ndarray:
+    """A pixel's error bar from the film means of a render of ``spp`` camera
+    samples: √(posterior_var + s²/spp), s² = spp/(spp − 1)·(mean L² − (mean L)²)
+    the spread of its samples (the part that averages down; the posterior
+    variance, shared by samples that integrate nearly the same lighting,
+    does not). ``mean`` is the radiance (H, W, C); a one-channel
+    ``sample_sq`` (mono, spectral) is compared with its channel mean."""
+    var = np.maximum(posterior_var, 0)
+    if sample_sq is None or spp < 2:
+        return np.sqrt(var)
+    mean = mean[..., :3] if sample_sq.shape[-1] == 3 else \
+        mean[..., :3].mean(axis=-1, keepdims=True)
+    spread = sample_sq - np.square(mean)
+    # (a spread below 1e-5 of the mean square is float32 cancellation)
+    spread = np.where(spread > 1e-5 * sample_sq, spread, 0) * spp / (spp - 1)
+    return np.sqrt(var + spread / spp)

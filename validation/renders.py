@@ -20,7 +20,7 @@ import mitsuba as mi
 import numpy as np
 
 from mcillum import envmaps, files, integrators
-from mcillum.integrators import passes, registry
+from mcillum.integrators import gp_quadrature, passes, registry
 
 from . import images, scenes
 from mcillum.errors import IntegratorError, SceneError, message, plugin_not_found
@@ -208,15 +208,8 @@ def split_aovs(image: np.ndarray, names, spp: int = 1) -> tuple[np.ndarray, dict
     aovs = {g: image[..., idx] for g, idx in groups.items()}
     radiance = image[..., :first]
     if "posterior_var" in aovs:
-        var = np.maximum(aovs["posterior_var"], 0)
-        if "sample_sq" in aovs and spp > 1:
-            mean = radiance[..., :3] if aovs["sample_sq"].shape[-1] == 3 else \
-                radiance[..., :3].mean(axis=-1, keepdims=True)
-            spread = aovs["sample_sq"] - np.square(mean)
-            # (a spread below 1e-5 of the mean square is float32 cancellation)
-            spread = np.where(spread > 1e-5 * aovs["sample_sq"], spread, 0) * spp / (spp - 1)
-            var = var + spread / spp
-        aovs["posterior_std"] = np.sqrt(var)
+        aovs["posterior_std"] = gp_quadrature.pixel_std(
+            aovs["posterior_var"], aovs.get("sample_sq"), radiance, spp)
     return radiance, aovs
 
 
