@@ -37,7 +37,8 @@ def _finish(fig, ax, xlabel: str, ylabel: str, title: str) -> str:
     ax.set_ylabel(ylabel)
     ax.set_title(title)
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7)
+    # beside the axes: with eight estimators the lines fill every corner
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)
     return _svg(fig)
 
 
