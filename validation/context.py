@@ -14,6 +14,9 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 
+from . import jobs
+from .executors import Local
+
 @dataclass
 class Run:
     """What every context of one validation run shares."""
@@ -23,6 +26,8 @@ class Run:
     cache_dir: str                  # references and generated maps
     out_dir: str                    # the run's --out
     progress: object = None         # progress.Progress, or None (silent)
+    #: Where the renders run (executors.py); this process unless told.
+    executor: object = field(default_factory=Local)
 
     def step(self, what: str, steps: int = 1) -> None:
         if self.progress is not None:
@@ -46,8 +51,10 @@ class Context:
     resolved: dict = None           # load: $-parameters as Mitsuba gets them
     scene: object = None            # load: the mi.Scene
     scene_key: str = ""             # load: content hash (references.cache_key)
+    scene_spec: object = None       # load: jobs.SceneSpec, the scene as a worker loads it
     params: dict = None             # load: integrator properties ({"max_depth": d})
-    integrators: dict = field(default_factory=dict)   # choose_estimators / probe_refusals
+    #: choose_estimators / probe_refusals: name → jobs.Integrator
+    integrators: dict = field(default_factory=dict)
     refused: dict = field(default_factory=dict)       # probe_refusals: name → error
     compile_seconds: dict = field(default_factory=dict)  # render_*: first render each
     units: dict = field(default_factory=dict)         # render_*: spp → name → Unit
@@ -65,6 +72,7 @@ class Context:
     budgets: list = field(default_factory=list)       # speed.render_budgets: (T, path spp)
     budget_units: list = field(default_factory=list)  # speed.render_budgets: name → Unit each
     flip_maps: dict = field(default_factory=dict)     # speed.measure_speed: name → (H, W)
+    timed_on: list = field(default_factory=list)      # speed.render_budgets: nodes that timed
     notes: list = field(default_factory=list)         # speed.*: what did not hold
     checks: list = field(default_factory=list)        # judge_*: results.Check
 
@@ -94,6 +102,18 @@ class Context:
             d = os.path.join(self.run.out_dir, "images", self.id)
         os.makedirs(d, exist_ok=True)
         return d
+
+    def job(self, integrator, spp: int, seed: int) -> "jobs.Job":
+        """One render of this context's scene with ``integrator`` (a
+        :class:`~.jobs.Integrator`)."""
+        return jobs.Job(self.scene_spec, integrator, spp, seed, live=self.scene)
+
+    def render(self, batch: list, label: str = "", timed: bool = False) -> list:
+        """The renders of ``batch`` (jobs), by the run's executor; each
+        finished one is a step of the progress bar (none if ``label`` is None)."""
+        def step(job):
+            self.run.step(f"{label} {job.integrator.name} {job.spp} spp")
+        return self.run.executor.render(batch, step if label is not None else None, timed)
 
     def derive(self, estimators=None, *, label: str = "", streams: dict | None = None,
                plan=None, **defines) -> "Context":

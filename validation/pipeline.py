@@ -33,8 +33,8 @@ from mcillum import files
 from mcillum.errors import Interrupted
 from mcillum.integrators import registry
 
-from . import (profiles, quadrature, renders, report, results, seeds, speed, stages,
-               statistics)
+from . import (executors, profiles, quadrature, renders, report, results, seeds, speed,
+               stages, statistics)
 from .context import Context, Run
 from .progress import Progress
 
@@ -94,11 +94,15 @@ def validate(profile_name: str = "quick", scene_names=None, estimators=None,
              out_dir: str = "out/validate", cache_dir: str | None = None,
              variant: str | None = None, progress: bool | None = None,
              groups=profiles.GROUPS, seed_set: int = 0,
-             speed_stage: bool = True) -> results.Results:
+             speed_stage: bool = True, executor: str = "local",
+             ray_address: str | None = None, ray_workers: int | None = None) -> results.Results:
     """Run a profile: its scene comparisons and/or its failures group
     (``groups``), filtered by scene name; write the results and the report.
     ``seed_set`` picks an independent repeat (seeds.py); ``speed_stage``
     False leaves out the speed-and-images stage (no verdict depends on it).
+    ``executor`` says where the renders run (executors.py: ``local``, or
+    ``ray`` at ``ray_address`` with ``ray_workers``); the images do not
+    depend on it.
 
     Ctrl-C raises :class:`mcillum.errors.Interrupted` saying what was left and what
     to do (finished renders are kept and reused by the next run).
@@ -126,27 +130,30 @@ def validate(profile_name: str = "quick", scene_names=None, estimators=None,
         sum(c.seeds * len(at_depth(cases_estimators, c)) *
             max(1, len(c.sweep[1]) if c.sweep else 1)
             for c in cases)
-    bar = Progress(total, progress)
-    run = Run(profile, variant, cache_dir, out_dir, bar)
     start = time.perf_counter()
     try:
         scene_results, case_results, checks = [], [], []
-        try:
-            for plan in plans:
-                result, found = compare_scene(run, plan, estimators, speed_stage)
-                scene_results.append(result)
-                checks += found
-            for plan in cases:
-                result, found = failure_case(run, plan, cases_estimators)
-                case_results.append(result)
-                checks += found
-        finally:
-            bar.close()
+        with executors.start(executor, ray_address, ray_workers, variant) as ex:
+            bar = Progress(total, progress)
+            run = Run(profile, variant, cache_dir, out_dir, bar, ex)
+            try:
+                for plan in plans:
+                    result, found = compare_scene(run, plan, estimators, speed_stage)
+                    scene_results.append(result)
+                    checks += found
+                for plan in cases:
+                    result, found = failure_case(run, plan, cases_estimators)
+                    case_results.append(result)
+                    checks += found
+            finally:
+                bar.close()
+            where = ex.describe()
         out = results.Results(
             time.strftime("%Y-%m-%dT%H:%M:%S%z"), profile.name, variant, mi.__version__,
             dr.__version__, _machine(), statistics.ALPHA, profile.reference_fraction,
             time.perf_counter() - start, scene_results, checks, case_results,
-            estimator_facts([*estimators, *cases_estimators]), seed_set=seed_set)
+            estimator_facts([*estimators, *cases_estimators]), seed_set=seed_set,
+            executor=where)
         results.write_json(json_path, out)
     except KeyboardInterrupt:
         raise Interrupted(_left_behind(out_dir, json_path, before)) from None

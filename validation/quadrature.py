@@ -29,7 +29,7 @@ import numpy as np
 
 from mcillum.integrators import registry
 
-from . import metrics, renders, seeds, sweeps
+from . import jobs, metrics, seeds, sweeps
 from .results import BiasAtN, Calibration, EqualRays, Quadrature
 
 #: The N of the bias-against-N measurement (the default N is added).
@@ -65,11 +65,11 @@ def measure(ctx) -> None:
     spp, k = ctx.plan.ladder[-1], ctx.plan.renders
     ref = ctx.reference
     for i, name in enumerate(names):
-        integrator = ctx.integrators[name]
-        n = integrator.directions
+        n = ctx.integrators[name].made.directions
         block = 2 * i
-        own = _renders(ctx, name, {}, spp, k, block)
-        baseline = (_renders(ctx, BASELINE, {}, spp * n, k, block + 1)
+        # (the equal-ray pair's median seconds are reported: timed, executors.py)
+        own = _renders(ctx, name, {}, spp, k, block, timed=True)
+        baseline = (_renders(ctx, BASELINE, {}, spp * n, k, block + 1, timed=True)
                     if BASELINE in registry.names() else None)
         rays = _equal_rays(own, baseline, ref, n, spp) if baseline is not None else None
         bias, calibration = None, None
@@ -85,14 +85,15 @@ def measure(ctx) -> None:
         ctx.quadrature[name] = Quadrature(name, n, spp, k, rays, bias, calibration)
 
 
-def _renders(ctx, name, params, spp, k, block) -> sweeps.Unit:
+def _renders(ctx, name, params, spp, k, block, timed=False) -> sweeps.Unit:
     """K renders (kept: a re-run loads them) from block ``block`` of the
     quadrature seed stream."""
-    integrator = renders.make_integrator(name, {**ctx.params, **params})
+    integrator = jobs.make(name, {**ctx.params, **params})
     tag = "-".join(f"{key}{value}" for key, value in sorted(params.items()))
     return sweeps.kept(ctx, f"quadrature{block}-{name}", f"quadrature {tag}",
                        {name: integrator}, {name: spp}, k,
-                       seeds.stream("quadrature", block).take(k), label=ctx.label)[name]
+                       seeds.stream("quadrature", block).take(k), label=ctx.label,
+                       timed=timed)[name]
 
 
 def _per_render_relmse(unit, ref) -> np.ndarray:

@@ -25,7 +25,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import re
 import time
 from dataclasses import dataclass, field
 
@@ -35,7 +34,7 @@ import numpy as np
 
 from mcillum import files
 
-from . import renders, scenes, seeds
+from . import jobs, renders, scenes, seeds
 from .statistics import Moments
 
 #: Fewer passes give an unreliable variance estimate (measured: with 8 passes
@@ -83,34 +82,6 @@ class Reference:
 
 # ------------------------------- Cache key -----------------------------------
 
-_FILE_REF = re.compile(r'(?:name="filename"\s+value|<include\s+filename)="([^"]*)"')
-
-
-def referenced_files(scene_path: str, defines: dict) -> list[str]:
-    """The scene file and every file it references, recursively, after
-    substituting ``$``-parameters (defaults from the file, then ``defines``)."""
-    seen: list[str] = []
-
-    def visit(path: str, params: dict):
-        path = os.path.abspath(path)
-        if path in seen:
-            return
-        seen.append(path)
-        if not path.endswith(".xml"):
-            return
-        text = open(path, encoding="utf-8").read()
-        local = {**scenes.defaults(path), **params}
-        for ref in _FILE_REF.findall(text):
-            for k, v in sorted(local.items(), key=lambda kv: -len(kv[0])):
-                ref = ref.replace(f"${k}", str(v))
-            target = ref if os.path.isabs(ref) else os.path.join(os.path.dirname(path), ref)
-            if os.path.isfile(target):
-                visit(target, local)
-
-    visit(scene_path, {k: str(v) for k, v in defines.items()})
-    return seen
-
-
 def _filled_by():
     """The modules whose code decides a cached reference: this one (passes,
     precision), the renderer, the pass splitter, and mcillum's own BSDF,
@@ -123,7 +94,7 @@ def _filled_by():
 
 def cache_key(scene_path: str, defines: dict, params: dict, variant: str) -> str:
     h = hashlib.sha256()
-    for path in referenced_files(scene_path, defines):
+    for path in scenes.referenced_files(scene_path, defines):
         h.update(os.path.basename(path).encode())
         with open(path, "rb") as f:
             h.update(hashlib.sha256(f.read()).digest())
@@ -205,6 +176,11 @@ def ensure(ctx, target: float) -> Reference:
     Stops early at the profile's ``reference_max_spp`` total samples per pixel
     or ``reference_max_seconds`` of rendering in this call, and records which
     cap it hit in ``capped``.
+
+    Passes are folded in one at a time, pass i with seed i of the "reference"
+    stream, and the rules are read after each: the result does not depend on
+    how many the executor renders at once (:func:`_batch`; passes beyond the
+    stopping point are dropped).
     """
     profile = ctx.run.profile
     spp_per_pass, max_spp = profile.reference_spp_per_pass, profile.reference_max_spp
@@ -213,7 +189,7 @@ def ensure(ctx, target: float) -> Reference:
     ref = load(cache_dir, key)
     if ref is not None and ref.spp_per_pass != spp_per_pass:
         ref = None  # a different pass size would mix batch sizes
-    integrator = renders.make_integrator("path", ctx.params)
+    integrator = jobs.make("path", ctx.params)
     stream = seeds.stream("reference")
     start, rendered = time.perf_counter(), 0
 
@@ -228,6 +204,7 @@ def ensure(ctx, target: float) -> Reference:
         # a re-run does not chase it again (a time cap would render every run)
         ref.capped = ref.meta["capped"]
 
+    outs = []                             # rendered, not yet folded in
     while need_more(ref) and not (ref is not None and ref.capped):
         if ref is not None and ref.spp + spp_per_pass > max_spp:
             ref.capped = f"spp cap {max_spp}"
@@ -235,8 +212,12 @@ def ensure(ctx, target: float) -> Reference:
         if ref is not None and rendered and time.perf_counter() - start > max_seconds:
             ref.capped = f"time cap {max_seconds:g} s"
             break
-        out = renders.render(ctx.scene, integrator, spp_per_pass,
-                             stream.seed(ref.passes if ref else 0))
+        if not outs:
+            done = ref.passes if ref else 0
+            n = _batch(ref, target, ctx.run.executor.parallelism, (max_spp // spp_per_pass) - done)
+            outs = ctx.render([ctx.job(integrator, spp_per_pass, stream.seed(done + i))
+                               for i in range(n)], None)
+        out = outs.pop(0)
         x = out.image[..., :3].astype(np.float64)
         rendered += 1
         if ref is None:
@@ -256,3 +237,19 @@ def ensure(ctx, target: float) -> Reference:
     if rendered:
         save(ref, cache_dir)
     return ref
+
+
+def _batch(ref: Reference | None, target: float, parallelism: int, room: int) -> int:
+    """How many passes to render at once: 1 with one worker; else the passes
+    the reference still needs (to MIN_PASSES, then by variance ∝ 1/passes),
+    at least one per worker, at most 64 per worker and ``room`` (the spp cap)."""
+    if parallelism <= 1:
+        return 1
+    passes = ref.passes if ref else 0
+    if passes < MIN_PASSES:
+        need = MIN_PASSES - passes
+    elif target <= 0:                     # (a noiseless target: until a cap)
+        need = 64 * parallelism
+    else:
+        need = int(np.ceil(passes * float(ref.variance_of_mean.mean()) / target)) - passes
+    return max(1, min(max(need, parallelism), 64 * parallelism, room))

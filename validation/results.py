@@ -45,7 +45,9 @@ VERSION = 1
 #: ``consistent_with_mc`` is false where no slope was fitted.
 #: 5: per scene ``quadrature`` (estimators of N directions: equal rays, bias
 #: against N, calibration of the posterior std); estimator facts ``unbiased``.
-MINOR_VERSION = 5
+#: 6: ``executor`` (where the renders ran: local or ray, workers, nodes) and
+#: per speed stage ``timed_on`` (the nodes that timed its renders).
+MINOR_VERSION = 6
 SCHEMA_FILE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results.schema.json")
 
 DEFINITIONS = {
@@ -272,6 +274,9 @@ class Speed:
     reference: ReferenceSummary
     mean_flip: dict[str, float]            # at the largest budget, first render
     notes: list[str] = field(default_factory=list)   # overhead and budget misses
+    #: The nodes whose renders were timed (one, unless a worker moved;
+    #: executors.py).
+    timed_on: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -495,6 +500,8 @@ class Results:
     failures: list[CaseResult] = field(default_factory=list)
     estimator_facts: dict[str, EstimatorInfo] = field(default_factory=dict)
     seed_set: int = 0
+    #: Where the renders ran (executors.py: ``describe()``).
+    executor: dict = field(default_factory=lambda: {"kind": "local"})
     definitions: dict[str, str] = field(default_factory=lambda: dict(DEFINITIONS))
     schema: str = SCHEMA
     version: int = VERSION

@@ -90,3 +90,33 @@ def path(name: str) -> str:
     if name not in scenes:
         raise ValueError(f"unknown scene '{name}'; available: {', '.join(scenes)}")
     return scenes[name].path
+
+
+# ------------------------------ Referenced files --------------------------------
+
+_FILE_REF = re.compile(r'(?:name="filename"\s+value|<include\s+filename)="([^"]*)"')
+
+
+def referenced_files(scene_path: str, defines: dict) -> list[str]:
+    """The scene file and every file it references, recursively, after
+    substituting ``$``-parameters (defaults from the file, then ``defines``)."""
+    seen: list[str] = []
+
+    def visit(path: str, params: dict):
+        path = os.path.abspath(path)
+        if path in seen:
+            return
+        seen.append(path)
+        if not path.endswith(".xml"):
+            return
+        text = open(path, encoding="utf-8").read()
+        local = {**defaults(path), **params}
+        for ref in _FILE_REF.findall(text):
+            for k, v in sorted(local.items(), key=lambda kv: -len(kv[0])):
+                ref = ref.replace(f"${k}", str(v))
+            target = ref if os.path.isabs(ref) else os.path.join(os.path.dirname(path), ref)
+            if os.path.isfile(target):
+                visit(target, local)
+
+    visit(scene_path, {k: str(v) for k, v in defines.items()})
+    return seen

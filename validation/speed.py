@@ -78,9 +78,10 @@ def time_costs(ctx) -> None:
         return
     sub, d = ctx.display, ctx.plan.display
     stream = seeds.stream("speed_timing")
+    sub.run.executor.timed_on()                         # (forget earlier stages')
     # pilot: the fastest of 3 renders at 1 and 16 spp (a ≈ t(1) − b)
     pilot = {n: costs.fit_cost({s: [min(t)] * 2 for s, t in spps.items()})
-             for n, spps in timing.timed(sub.scene, sub.integrators,
+             for n, spps in timing.timed(sub.run.executor, _job(sub),
                                          dict.fromkeys(sub.integrators, list(PILOT_SPP)),
                                          PILOT_ROUNDS, stream).items()}
     path_spp = budget_spp(pilot, d.path_spp)
@@ -92,7 +93,7 @@ def time_costs(ctx) -> None:
     for n, model in pilot.items():
         lo = costs.spp_for(model, smallest / 4)
         plan[n] = [lo, max(costs.spp_for(model, smallest), 2 * lo)]
-    ctx.timings = timing.timed(sub.scene, sub.integrators, plan, d.repeats, stream)
+    ctx.timings = timing.timed(sub.run.executor, _job(sub), plan, d.repeats, stream)
     ctx.costs = {n: costs.fit_cost(t) for n, t in ctx.timings.items()}
     ctx.budget_path_spp = path_spp
 
@@ -122,13 +123,20 @@ def render_budgets(ctx) -> None:
     spps = [{n: path_spp if n == REFERENCE else costs.spp_for(m, budget)
              for n, m in ctx.costs.items()} for budget, path_spp in ctx.budgets]
     # (untimed: the first render at a larger wavefront allocates memory, timing.py)
-    timing.warm(sub.scene, sub.integrators, {n: max(s[n] for s in spps) for n in spps[0]},
+    timing.warm(sub.run.executor, _job(sub),
+                {n: max(s[n] for s in spps) for n in spps[0]},
                 seeds.stream("speed_timing").seed(0))
     for j, ((budget, _), spp) in enumerate(zip(ctx.budgets, spps)):
         ctx.budget_units.append(sweeps.interleaved(
-            sub.scene, sub.integrators, spp, d.renders, seeds.stream("speed", j).take(d.renders),
-            sub.run.step, f"{sub.label} {budget * 1e3:.0f} ms"))
+            sub, sub.integrators, spp, d.renders, seeds.stream("speed", j).take(d.renders),
+            f"{sub.label} {budget * 1e3:.0f} ms", timed=True))
+    ctx.timed_on = sub.run.executor.timed_on()
     _save_cache(ctx)
+
+
+def _job(sub):
+    """``job(name, spp, seed)`` of the display scene (timing.py)."""
+    return lambda name, spp, seed: sub.job(sub.integrators[name], spp, seed)
 
 
 def _note_overhead(ctx) -> None:
@@ -184,7 +192,7 @@ def measure_speed(ctx) -> None:
         {n: Ratio(*v) for n, v in ratios.items()}, ranking,
         stages.reference_summary(ref),
         {n: (f[1] if f is not None else float("nan")) for n, f in flips.items()},
-        list(ctx.notes))
+        list(ctx.notes), list(ctx.timed_on))
 
 
 def _budget_run(ctx, name: str, unit: Unit, budget: float, r: np.ndarray) -> BudgetRun:
@@ -253,6 +261,7 @@ def _load_cache(ctx) -> None:
     ctx.timings = {n: {int(s): t for s, t in v.items()} for n, v in meta["timings"].items()}
     ctx.budget_path_spp = [int(x) for x in meta["path_spp"]]
     ctx.budget_units = units
+    ctx.timed_on = list(meta.get("timed_on", []))
     ctx.run.step(f"{ctx.id} speed stage: loaded",
                  len(units) * ctx.plan.display.renders * len(ctx.display.integrators))
 
@@ -262,6 +271,7 @@ def _save_cache(ctx) -> None:
     arrays = {"key": key, "meta": json.dumps({
         "timings": {n: {str(s): t for s, t in v.items()} for n, v in ctx.timings.items()},
         "path_spp": ctx.budget_path_spp,
+        "timed_on": ctx.timed_on,
         "spp": [[[n, u.spp] for n, u in units.items()] for units in ctx.budget_units]})}
     for j, units in enumerate(ctx.budget_units):
         for i, u in enumerate(units.values()):

@@ -21,7 +21,7 @@ from mcillum.envmaps import sun
 from mcillum.errors import root_cause
 from mcillum.integrators import UnreachableContentError, registry
 
-from . import analysis, checks, references, renders, scenes, seeds, statistics, sweeps, tails
+from . import analysis, checks, jobs, references, renders, scenes, seeds, statistics, sweeps, tails
 from .results import (BatchTest, CaseReference, CaseResult, CaseRow, EstimatorResult,
                       ReferenceSummary, SceneResult, SunSplit, Sweep, SweepRow, TailNumbers)
 
@@ -42,12 +42,14 @@ def load(ctx) -> None:
     ctx.params = {"max_depth": ctx.max_depth}
     ctx.scene_key = references.cache_key(ctx.info.path, ctx.resolved, ctx.params,
                                          ctx.run.variant)
+    ctx.scene_spec = jobs.SceneSpec(os.path.abspath(ctx.info.path),
+                                    tuple(sorted(ctx.resolved.items())), ctx.scene_key)
 
 
 def choose_estimators(ctx) -> None:
     """The estimators asked for whose registry facts say they reach every
     kind of content the scene header declares (at the plan's max_depth)."""
-    ctx.integrators = {n: renders.make_integrator(n, ctx.params) for n in ctx.estimators
+    ctx.integrators = {n: jobs.make(n, ctx.params) for n in ctx.estimators
                        if registry.facts(n).renders(ctx.info.contains, ctx.max_depth)}
 
 
@@ -58,12 +60,11 @@ def probe_refusals(ctx) -> None:
     for name in ctx.estimators:
         error = None if name == REFERENCE else _refusal(ctx, name)
         if error is None:
-            ctx.integrators[name] = renders.make_integrator(name, ctx.params)
+            ctx.integrators[name] = jobs.make(name, ctx.params)
             continue
         ctx.refused[name] = error
         if ctx.plan.group == "unreachable":
-            ctx.integrators[name] = renders.make_integrator(
-                name, {**ctx.params, "allow_unreachable": True})
+            ctx.integrators[name] = jobs.make(name, {**ctx.params, "allow_unreachable": True})
 
 
 def _refusal(ctx, name: str) -> UnreachableContentError | None:
@@ -88,8 +89,9 @@ def _compile(ctx) -> None:
     if ctx.compile_seconds:
         return
     seed = seeds.stream("compile").seed()
-    ctx.compile_seconds = {n: renders.render(ctx.scene, integ, 1, seed).seconds
-                           for n, integ in ctx.integrators.items()}
+    batch = [ctx.job(integ, 1, seed) for integ in ctx.integrators.values()]
+    ctx.compile_seconds = {n: out.seconds for n, out in
+                           zip(ctx.integrators, ctx.render(batch, None, timed=True))}
 
 
 def _file(ctx, what: str) -> str:
@@ -106,12 +108,15 @@ def render_ladder(ctx) -> None:
 
 
 def render_seeds(ctx) -> None:
-    """K renders per estimator at the plan's spp (the case's seed stream; kept)."""
+    """K renders per estimator at the plan's spp (the case's seed stream; kept).
+    A sweep's are timed (executors.py): its chart puts their seconds beside
+    the error."""
     spp, k = ctx.plan.spp, ctx.plan.seeds
     name = ctx.streams["renders"]
     ctx.units = {spp: sweeps.kept(ctx, _file(ctx, name), name, ctx.integrators,
                                   dict.fromkeys(ctx.integrators, spp), k,
-                                  seeds.stream(name).take(k), _compile, ctx.label)}
+                                  seeds.stream(name).take(k), _compile, ctx.label,
+                                  timed=bool(getattr(ctx.plan, "sweep", ())))}
 
 
 def _fresh(ctx, name: str, spp: int | None = None, k: int | None = None) -> np.ndarray:
@@ -292,7 +297,7 @@ def split_sun(ctx) -> None:
         ctx.rows[name].numbers.sun = SunSplit(
             facts, not (test.outcome == "fail" and test.replicated), test.test,
             sunless_mean, expected_sun_hits(
-                name, samples * getattr(ctx.integrators[name], "directions", 1),
+                name, samples * getattr(ctx.integrators[name].made, "directions", 1),
                 facts["solid_angle"]),
             1.0 - sunless_mean / image_mean, test.outcome, test.reason)
 

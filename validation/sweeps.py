@@ -21,7 +21,6 @@ import numpy as np
 
 from mcillum import files
 
-from . import renders
 from .seeds import stream
 
 
@@ -42,27 +41,25 @@ def rotation(names: list, i: int) -> list:
     return names[k:] + names[:k]
 
 
-def interleaved(scene, integrators: dict, spp: dict[str, int], k: int, seeds: list[int],
-                progress=None, label: str = "") -> dict[str, Unit]:
-    """K renders of each integrator at its own spp, render i with ``seeds[i]``,
-    the integrators rotated every round (:func:`rotation`)."""
+def interleaved(ctx, integrators: dict, spp: dict[str, int], k: int, seeds: list[int],
+                label: str = "", timed: bool = False) -> dict[str, Unit]:
+    """K renders of each integrator (name → :class:`~.jobs.Integrator`) of
+    context ``ctx``'s scene at its own spp, render i with ``seeds[i]``, the
+    integrators rotated every round (:func:`rotation`); by the run's executor,
+    one batch (``timed``: their wall times are reported, executors.py)."""
     if len(seeds) < k:
         raise ValueError(f"{k} renders need {k} seeds, got {len(seeds)}")
     names = list(integrators)
+    order = [n for i in range(k) for n in rotation(names, i)]
+    batch = [ctx.job(integrators[n], spp[n], seeds[i // len(names)])
+             for i, n in enumerate(order)]
     shots = {n: [] for n in names}
-    times = {n: [] for n in names}
-    aovs = {n: {} for n in names}
-    for i in range(k):
-        for n in rotation(names, i):
-            out = renders.render(scene, integrators[n], spp[n], seed=seeds[i])
-            shots[n].append(out.image)
-            times[n].append(out.seconds)
-            for group, layer in out.aovs.items():
-                aovs[n].setdefault(group, []).append(layer)
-            if progress:
-                progress(f"{label} {n} {spp[n]} spp #{i + 1}/{k}")
-    return {n: Unit(n, spp[n], np.stack(shots[n]), times[n],
-                    {g: np.stack(v) for g, v in aovs[n].items()}) for n in names}
+    for n, out in zip(order, ctx.render(batch, label, timed)):
+        shots[n].append(out)
+    return {n: Unit(n, spp[n], np.stack([o.image for o in shots[n]]),
+                    [o.seconds for o in shots[n]],
+                    {g: np.stack([o.aovs[g] for o in shots[n]]) for g in shots[n][0].aovs})
+            for n in names}
 
 
 # ------------------------------- Kept renders -----------------------------------
@@ -111,7 +108,8 @@ def _save(path: str, key: str, units: dict[str, Unit], compile_seconds: dict) ->
 
 
 def kept(ctx, file: str, tag: str, integrators: dict, spp: dict[str, int], k: int,
-         seed_list: list[int], compile_=None, label: str = "") -> dict[str, Unit]:
+         seed_list: list[int], compile_=None, label: str = "",
+         timed: bool = False) -> dict[str, Unit]:
     """:func:`interleaved`, kept in ``<out>/renders/<id>/<file>.npz`` under a
     key of everything that decides the images: a re-run with the same key
     loads them (and the compile times recorded with them) instead of
@@ -128,7 +126,7 @@ def kept(ctx, file: str, tag: str, integrators: dict, spp: dict[str, int], k: in
         return units
     if compile_ is not None:
         compile_(ctx)
-    units = interleaved(ctx.scene, integrators, spp, k, seed_list, ctx.run.step, label)
+    units = interleaved(ctx, integrators, spp, k, seed_list, label, timed)
     _save(path, key, units, ctx.compile_seconds)
     return units
 

@@ -24,34 +24,45 @@ import numpy as np
 from mcillum import files
 
 from . import costs, seeds
-from .renders import render
+from .executors import Local
+from .jobs import Job
 from .results import CostModel, to_json
 from .sweeps import rotation
 
 
-def warm(scene, integrators: dict, spp: dict[str, int], seed: int) -> dict[str, float]:
-    """One untimed-for-the-model render of each integrator at ``spp[name]``;
-    returns its seconds (the first of a process includes compilation)."""
-    return {n: render(scene, integrators[n], spp[n], seed).seconds for n in spp}
+def warm(executor, job, spp: dict[str, int], seed: int) -> dict[str, float]:
+    """One untimed-for-the-model render of each integrator at ``spp[name]``
+    (``job(name, spp, seed)`` makes its :class:`~.jobs.Job`); returns its
+    seconds (the first of a process includes compilation)."""
+    names = list(spp)
+    outs = executor.render([job(n, spp[n], seed) for n in names], timed=True)
+    return {n: out.seconds for n, out in zip(names, outs)}
 
 
-def timed(scene, integrators: dict, plan: dict[str, list[int]], rounds: int,
+def timed(executor, job, plan: dict[str, list[int]], rounds: int,
           stream) -> dict[str, dict[int, list[float]]]:
     """{name: {spp: [seconds]}}: after an untimed render at every spp of the
     plan (largest first), ``rounds`` rounds, the integrators rotated every
     round, each rendering at every spp of ``plan[name]`` (round i with seed i
-    of ``stream``). Without the warm-up at each spp, a cold kernel cache once
-    made one timed render 91 ms among 10 ms ones, and the fitted fixed cost
-    22 ms instead of 2."""
+    of ``stream``); one timed batch of the executor. Without the warm-up at
+    each spp, a cold kernel cache once made one timed render 91 ms among
+    10 ms ones, and the fitted fixed cost 22 ms instead of 2."""
+    batch, slots = [], []
     for j in range(max(len(s) for s in plan.values())):
-        warm(scene, integrators, {n: sorted(s, reverse=True)[j] for n, s in plan.items()
-                                  if j < len(s)}, stream.seed(0))
-    out = {n: {s: [] for s in spps} for n, spps in plan.items()}
+        for n, spps in plan.items():
+            if j < len(spps):
+                batch.append(job(n, sorted(spps, reverse=True)[j], stream.seed(0)))
+                slots.append(None)
     names = list(plan)
     for i in range(rounds):
         for n in rotation(names, i):
             for s in plan[n]:
-                out[n][s].append(render(scene, integrators[n], s, stream.seed(i)).seconds)
+                batch.append(job(n, s, stream.seed(i)))
+                slots.append((n, s))
+    out = {n: {s: [] for s in spps} for n, spps in plan.items()}
+    for slot, result in zip(slots, executor.render(batch, timed=True)):
+        if slot is not None:
+            out[slot[0]][slot[1]].append(result.seconds)
     return out
 
 
@@ -68,16 +79,22 @@ class BenchRow:
 
 
 def bench(scene, integrators: dict, spp: int, runs: int) -> list[BenchRow]:
-    """Time each integrator at ``spp`` // 4 and ``spp`` (``runs`` interleaved
-    rounds), fit t = a + b·spp, and compare the b (seconds per spp) to the
-    first integrator's."""
+    """Time each integrator (name → :class:`~.jobs.Integrator`) at ``spp`` // 4
+    and ``spp`` (``runs`` interleaved rounds) in this process, fit
+    t = a + b·spp, and compare the b (seconds per spp) to the first
+    integrator's."""
     if runs < 1:
         raise ValueError("need at least one warm run")
     stream = seeds.stream("bench")
-    first = warm(scene, integrators, dict.fromkeys(integrators, 1), stream.seed(0))
+    executor = Local()
+
+    def job(name, n, seed):                 # (this process only: no scene spec)
+        return Job(None, integrators[name], n, seed, live=scene)
+
+    first = warm(executor, job, dict.fromkeys(integrators, 1), stream.seed(0))
     low = max(1, spp // 4)
     plan = {n: sorted({low, max(spp, low + 1)}) for n in integrators}
-    times = timed(scene, integrators, plan, runs, stream)
+    times = timed(executor, job, plan, runs, stream)
     models = {n: costs.fit_cost(t) for n, t in times.items()}
     names = list(integrators)
     w, h = (int(x) for x in scene.sensors()[0].film().crop_size())

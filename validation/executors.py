@@ -1,0 +1,82 @@
+"""Where the renders of a validation run: in this process, or on a Ray cluster.
+
+An executor takes a list of :class:`~.jobs.Job` and returns their renders
+in the same order (:meth:`Local.render`). The seeds are in the jobs, so an
+image does not depend on where it was rendered. Two kinds of work:
+
+* **statistical renders** (ladders, references, failure seeds): any worker,
+  as many at once as there are workers;
+* **timed renders** (``timed=True``: the speed-and-images stage, the sweeps'
+  and the equal-ray renders, whose wall times are reported): one at a time on
+  one worker, with nothing else of the run rendering meanwhile. The pipeline
+  waits for every batch before it starts the next, so nothing else is in
+  flight then. :meth:`Local.timed_on` says on which node they ran.
+
+``local`` is this process (one render at a time, today's run); ``ray`` is
+:mod:`.ray_executor`.
+"""
+
+from __future__ import annotations
+
+import platform
+
+from .jobs import Workshop
+
+KINDS = ("local", "ray")
+
+
+class Local:
+    """Every render in this process, one after another."""
+
+    kind = "local"
+    parallelism = 1          # renders at once
+
+    def __init__(self):
+        self.workshop = Workshop()
+        self.timed_nodes: set[str] = set()
+
+    def render(self, jobs, progress=None, timed: bool = False) -> list:
+        """Render ``jobs`` in order; ``progress(job)`` after each."""
+        out = []
+        for job in jobs:
+            out.append(self.workshop.run(job))
+            if progress:
+                progress(job)
+        if timed and jobs:
+            self.timed_nodes.add(node_name())
+        return out
+
+    def timed_on(self) -> list[str]:
+        """The nodes that rendered timed jobs since the last call."""
+        nodes, self.timed_nodes = sorted(self.timed_nodes), set()
+        return nodes
+
+    def describe(self) -> dict:
+        return {"kind": self.kind, "workers": 1, "nodes": [node_name()]}
+
+    def close(self) -> None:
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def node_name() -> str:
+    """This machine, as the results name it."""
+    return platform.node() or "localhost"
+
+
+def start(kind: str = "local", address: str | None = None, workers: int | None = None,
+          variant: str | None = None):
+    """The executor of ``kind``: ``local``, or ``ray`` (joining the cluster at
+    ``address``, else starting one on this machine) with ``workers`` workers
+    (default: one per CPU, or per GPU for a cuda variant) in ``variant``."""
+    if kind == "local":
+        return Local()
+    if kind == "ray":
+        from . import ray_executor
+        return ray_executor.RayExecutor(address, workers, variant)
+    raise ValueError(f"unknown executor '{kind}': use one of {', '.join(KINDS)}")

@@ -1,0 +1,142 @@
+"""The unit of work of a validation: one render, as data another process can run.
+
+A :class:`Job` names everything that decides its image: the scene
+(:class:`SceneSpec`: its file, its $-parameters as Mitsuba gets them and its
+content key), the integrator (:class:`Integrator`: plugin name and
+properties), spp and seed. The process that made a job also keeps the loaded
+scene and the integrator in it (``live``); they never travel. Another process
+rebuilds them from the names in a :class:`Workshop`, which caches scenes by
+content key and integrators by name and properties, so that a worker loads
+each scene once and compiles each kernel once.
+
+A worker on another machine may lack the scene's files (a generated map lives
+in the driver's cache) or have them elsewhere: :func:`scene_files` reads them
+on the driver, and a workshop given them writes a private copy with the same
+layout when the files it finds differ (:meth:`Workshop.scene`).
+"""
+
+from __future__ import annotations
+
+import atexit
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+
+from . import renders, scenes
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    """A scene as a worker loads it."""
+
+    path: str                                  # the XML file (absolute)
+    defines: tuple[tuple[str, str], ...]       # renders.resolve_defines' output
+    key: str                                   # references.cache_key: the content hash
+
+
+@dataclass(frozen=True)
+class Integrator:
+    """An integrator as a worker makes it, and (``made``) the one this
+    process made from the same name and properties (never sent)."""
+
+    name: str
+    params: tuple[tuple[str, object], ...]
+    made: object = field(default=None, compare=False, repr=False)
+
+    def __getstate__(self):
+        return {"name": self.name, "params": self.params, "made": None}
+
+    def __setstate__(self, state):
+        for k, v in state.items():
+            object.__setattr__(self, k, v)
+
+
+def make(name: str, params: dict | None = None) -> Integrator:
+    """:func:`renders.make_integrator`, remembering how it was made."""
+    params = dict(params or {})
+    return Integrator(name, tuple(sorted(params.items())), renders.make_integrator(name, params))
+
+
+@dataclass
+class Job:
+    """One render: ``integrator`` on ``scene`` at ``spp`` with ``seed``.
+    ``live`` is the loaded scene of the process that made the job (never sent)."""
+
+    scene: SceneSpec
+    integrator: Integrator
+    spp: int
+    seed: int
+    live: object = field(default=None, compare=False, repr=False)
+
+    def __getstate__(self):
+        return {**self.__dict__, "live": None}
+
+
+def scene_files(spec: SceneSpec) -> dict[str, bytes]:
+    """The bytes of the scene file and of every file it references (includes,
+    meshes, maps), by absolute path."""
+    out = {}
+    for path in scenes.referenced_files(spec.path, dict(spec.defines)):
+        with open(path, "rb") as f:
+            out[path] = f.read()
+    return out
+
+
+class Workshop:
+    """The scenes and integrators of one process, built from jobs and kept."""
+
+    def __init__(self):
+        self.scenes: dict[str, object] = {}
+        self.integrators: dict[tuple, object] = {}
+        self._copies: str | None = None
+
+    def run(self, job: Job, files=None) -> renders.Render:
+        """Render ``job`` (with its live scene and integrator when it has
+        them); ``files()`` gives :func:`scene_files` when the scene is new here."""
+        scene = job.live if job.live is not None else self.scene(job.scene, files)
+        integrator = job.integrator.made
+        if integrator is None:
+            spec = job.integrator
+            integrator = self.integrators.get((spec.name, spec.params))
+            if integrator is None:
+                integrator = renders.make_integrator(spec.name, dict(spec.params))
+                self.integrators[(spec.name, spec.params)] = integrator
+        return renders.render(scene, integrator, job.spp, job.seed)
+
+    def scene(self, spec: SceneSpec, files=None):
+        """The scene of ``spec``, loaded once per content key: from its own
+        files when they are here with the same bytes, else from a private
+        copy of ``files()``."""
+        if spec.key not in self.scenes:
+            self.scenes[spec.key] = renders.load_resolved(*self._local(spec, files))
+        return self.scenes[spec.key]
+
+    def _local(self, spec: SceneSpec, files) -> tuple[str, dict]:
+        defines = dict(spec.defines)
+        if files is None:
+            return spec.path, defines
+        content = files()
+        if all(_same(path, data) for path, data in content.items()):
+            return spec.path, defines
+        if self._copies is None:
+            self._copies = tempfile.mkdtemp(prefix="mcillum-scenes-")
+            atexit.register(shutil.rmtree, self._copies, True)
+        root = os.path.join(self._copies, spec.key)
+        moved = {}
+        for path, data in content.items():
+            moved[path] = os.path.join(root, path.lstrip(os.sep))
+            os.makedirs(os.path.dirname(moved[path]), exist_ok=True)
+            with open(moved[path], "wb") as f:
+                f.write(data)
+        # relative references follow the copied layout; absolute ones come
+        # from $-parameters (a map's checked file): point them at the copies
+        return moved[spec.path], {k: moved.get(v, v) for k, v in defines.items()}
+
+
+def _same(path: str, data: bytes) -> bool:
+    try:
+        with open(path, "rb") as f:
+            return f.read() == data
+    except OSError:
+        return False
