@@ -21,7 +21,7 @@ import threading
 from mcillum import errors, files
 from mcillum.envmaps import catalog, safety
 
-from . import profiles, renders, results, timing
+from . import executors, jobs, profiles, renders, results, timing
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 1, 2, 130, 143
 
@@ -115,6 +115,15 @@ def _parser() -> argparse.ArgumentParser:
                         "(JUnit then reports inconclusive checks as failures, not skipped)")
     v.add_argument("--no-speed", action="store_true",
                    help="leave out the speed-and-images stage (no verdict depends on it)")
+    v.add_argument("--executor", choices=executors.KINDS, default="local",
+                   help="where the renders run: this process (local, default) or a Ray "
+                        "cluster (ray; pip install 'mcillum[ray]'); the images are the same")
+    v.add_argument("--ray-address", metavar="ADDR",
+                   help="with --executor ray: the cluster to join (auto, or ray://HOST:10001); "
+                        "default: start a Ray instance on this machine")
+    v.add_argument("--ray-workers", type=int, metavar="N",
+                   help="with --executor ray: render workers (default one per CPU of the "
+                        "cluster, or per GPU for a cuda variant)")
 
     rp = sub.add_parser(
         "report", help="(re)write the HTML report of an existing validation run",
@@ -182,7 +191,7 @@ def _bench(args) -> int:
     if args.json:
         files.check_output(args.json, "--json")
     variant = renders.set_variant(args.variant)
-    integrators = {n: renders.make_integrator(n, params) for n in names}
+    integrators = {n: jobs.make(n, params) for n in names}
     scene = renders.load_scene(args.scene, **defines)
     rows = timing.bench(scene, integrators, args.spp, args.runs)
     for row in rows:
@@ -217,6 +226,10 @@ def _validate(args) -> int:
     profiles.PROFILES[args.profile].check_scenes(args.scenes or [])
     if not 0 <= args.seed_set < 1000:
         raise _Usage(f"--seed-set must be in 0…999, got {args.seed_set}")
+    if args.executor != "ray" and (args.ray_address or args.ray_workers is not None):
+        raise _Usage("--ray-address and --ray-workers need --executor ray")
+    if args.ray_workers is not None and args.ray_workers < 1:
+        raise _Usage(f"--ray-workers must be >= 1, got {args.ray_workers}")
     files.make_dir(args.out, "--out")
     if args.junit:
         files.check_output(args.junit, "--junit")
@@ -227,7 +240,9 @@ def _validate(args) -> int:
         renders.make_integrator(name, {})
     out = pipeline.validate(args.profile, args.scenes, args.estimators, args.out, cache,
                             args.variant, groups=tuple(args.groups),
-                            seed_set=args.seed_set, speed_stage=not args.no_speed)
+                            seed_set=args.seed_set, speed_stage=not args.no_speed,
+                            executor=args.executor, ray_address=args.ray_address,
+                            ray_workers=args.ray_workers)
     if args.junit:
         results.write_junit(args.junit, out, strict=args.strict)
     print(results.summary(out))
