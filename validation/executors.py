@@ -52,7 +52,8 @@ class Local:
         return nodes
 
     def describe(self) -> dict:
-        return {"kind": self.kind, "workers": 1, "nodes": [node_name()]}
+        return {"kind": self.kind, "workers": 1, "nodes": [node_name()],
+                "note": "one render at a time in this process"}
 
     def close(self) -> None:
         pass

@@ -177,8 +177,11 @@ class RayExecutor:
                 if timed:
                     self.timed_nodes.add(node)
         except BaseException:
-            for ref in pending:
-                ray.cancel(ref)
+            for ref in pending:          # (the run stops: nobody waits for them)
+                try:
+                    ray.cancel(ref)
+                except Exception:  # noqa: BLE001  (already finished, or a dead worker)
+                    pass
             raise
         return out
 
@@ -189,7 +192,10 @@ class RayExecutor:
     def describe(self) -> dict:
         nodes = sorted({n["NodeManagerAddress"] for n in ray.nodes() if n.get("Alive")})
         return {"kind": self.kind, "address": self.address or "a local instance",
-                "workers": self.parallelism, "nodes": nodes, "ray": ray.__version__}
+                "workers": self.parallelism, "nodes": nodes, "ray": ray.__version__,
+                "note": f"statistical renders ran up to {self.parallelism} at a time (their "
+                        "seconds include the other workers' load); timed ones one at a "
+                        "time on one worker (speed.timed_on)"}
 
     def close(self) -> None:
         for w in getattr(self, "workers", []):

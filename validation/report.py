@@ -142,6 +142,22 @@ median lies in [0.67, 1.5]
 {bias}"""
 
 
+def _executor(where: dict) -> str:
+    """Where the renders ran (results ``executor``), in a few words."""
+    if where.get("kind") != "ray":
+        return "rendered in one process"
+    nodes = len(where.get("nodes", []))
+    return (f"rendered on Ray ({where.get('workers', '?')} workers on {nodes} "
+            f"node{'s' if nodes != 1 else ''})")
+
+
+def _timed_on(sp) -> str:
+    if not sp.timed_on:
+        return ""
+    return (f" Every render of this stage was timed alone on "
+            f"{html.escape(', '.join(sp.timed_on))}.")
+
+
 def _speed_section(scene: SceneResult, run_dir: str, colours: dict) -> str:
     """The speed-and-images stage: equal-time images at the display
     resolution, error and FLIP maps, the worst region, accuracy against time."""
@@ -183,7 +199,7 @@ def _speed_section(scene: SceneResult, run_dir: str, colours: dict) -> str:
 <h3>Equal time at {sp.res}²: {top.seconds * 1e3:.0f} ms per render</h3>
 <p>Every estimator got the time Mitsuba's <code>path</code> needs for {top.path_spp} spp;
 its spp come from its own cost model t = a + b·spp. Reference: <code>path</code>,
-{ref_info.spp} spp in {ref_info.passes} passes{capped}. Tone mapping for every image:
+{ref_info.spp} spp in {ref_info.passes} passes{capped}.{_timed_on(sp)} Tone mapping for every image:
 x·2<sup>{ev:+.1f}</sup>, clipped to [0, 1], sRGB. Captions: spp and the measured time of the
 render shown.</p>
 <div class=row>{''.join(row)}</div>
@@ -462,7 +478,7 @@ def _write(run_dir: str, res: Results) -> str:
 <p>{html.escape(res.created)} · {html.escape(m['platform'])}, {m['cpus']} CPUs ·
 variant <code>{html.escape(res.variant)}</code> · mitsuba {html.escape(res.mitsuba_version)},
 drjit {html.escape(res.drjit_version)} · profile <b>{html.escape(res.profile)}</b> ·
-{res.wall_seconds:.0f} s · report written {time.strftime('%Y-%m-%d %H:%M')}</p>
+{_executor(res.executor)} · {res.wall_seconds:.0f} s · report written {time.strftime('%Y-%m-%d %H:%M')}</p>
 <p class="verdict {verdict[0]}">{verdict[1]}</p>
 <p>Scenes: {toc} · <a href="#failures">where methods fail</a> · <a href="#summary">summary</a></p>
 <p>Each estimator renders every scene K times per spp; Mitsuba's <code>path</code> at the same
