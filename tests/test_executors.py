@@ -1,0 +1,190 @@
+"""Where renders run (validation/jobs.py, executors.py), without Ray: a job
+that travels rebuilds the same image, a node without the scene's files renders
+it from a copy, the reference does not depend on how many passes an executor
+renders at once, timed renders are the ones whose times are reported, and
+``--executor ray`` without Ray says how to install it. With Ray: test_ray.py."""
+
+from __future__ import annotations
+
+import os
+import pickle
+import sys
+
+import numpy as np
+import pytest
+
+from mcillum.validation import (cli, executors, jobs, pipeline, profiles, references,
+                                renders, stages)
+from mcillum.validation.context import Context, Run
+
+
+def _lone_sphere(tmp_path, res=8) -> Context:
+    """lone_sphere under the generated sg map (an absolute path into the cache)."""
+    profile = profiles.Profile("test", ())
+    plan = profiles.SceneRun("lone_sphere", res, (4,), 2, max_depth=2, defines={"envmap": "sg"})
+    ctx = Context(Run(profile, "llvm_ad_rgb", str(tmp_path / "cache"), str(tmp_path / "out")),
+                  plan, "lone_sphere", ["cosine_hemisphere"], dict(plan.defines))
+    stages.load(ctx)
+    return ctx
+
+
+def test_a_job_travels_without_its_objects_and_renders_the_same(llvm, tmp_path):
+    ctx = _lone_sphere(tmp_path)
+    job = ctx.job(jobs.make("cosine_hemisphere", ctx.params), 16, 7)
+    here = executors.Local().render([job])[0]
+    sent = pickle.loads(pickle.dumps(job))
+    assert sent.live is None and sent.integrator.made is None
+    assert (sent.scene, sent.integrator, sent.spp, sent.seed) == \
+        (job.scene, job.integrator, job.spp, job.seed)
+    there = executors.Local().render([sent])[0]            # rebuilt from the names
+    assert np.array_equal(here.image, there.image)
+    other = executors.Local().render([jobs.Job(job.scene, job.integrator, 16, 8)])[0]
+    assert not np.array_equal(here.image, other.image)     # (the seed decides)
+
+
+def test_a_node_without_the_files_renders_from_a_copy(llvm, tmp_path):
+    """Another machine: the scene file, its includes and the map (a file in
+    the driver's cache, given by absolute path) are not at these paths."""
+    ctx = _lone_sphere(tmp_path)
+    spec, integrator = ctx.scene_spec, jobs.make("cosine_hemisphere", ctx.params)
+    content = jobs.scene_files(spec)
+    assert spec.path in content and dict(spec.defines)["envmap"] in content
+    elsewhere = "/no-such-node-dir"
+
+    def moved(path):
+        return elsewhere + path
+
+    far = jobs.SceneSpec(moved(spec.path),
+                         tuple((k, moved(v) if v in content else v) for k, v in spec.defines),
+                         spec.key)
+    shop = jobs.Workshop()
+    out = shop.run(jobs.Job(far, integrator, 16, 3),
+                   lambda: {moved(p): data for p, data in content.items()})
+    assert shop._copies is not None and not os.path.exists(elsewhere)
+    here = jobs.Workshop()
+    same = here.run(jobs.Job(spec, integrator, 16, 3), lambda: content)
+    assert here._copies is None                              # its own files: no copy
+    assert np.array_equal(out.image, same.image)
+
+
+class _Wide(executors.Local):
+    """This process, claiming to render several passes at once (batches as a
+    Ray run of that many workers makes them)."""
+
+    def __init__(self, parallelism):
+        super().__init__()
+        self.parallelism = parallelism
+        self.batches = []
+
+    def render(self, batch, progress=None, timed=False):
+        self.batches.append(len(batch))
+        return super().render(batch, progress, timed)
+
+
+def _reference(tmp_path, executor, targets):
+    profile = profiles.Profile("test", (), reference_spp_per_pass=16)
+    plan = profiles.SceneRun("furnace_sphere", 4, (1,), 2, max_depth=2)
+    ctx = Context(Run(profile, "llvm_ad_rgb", str(tmp_path), str(tmp_path / "out"),
+                      executor=executor), plan, "furnace_sphere", ["path"])
+    stages.load(ctx)
+    out = []
+    for target in targets:
+        out.append(references.ensure(ctx, target(out)))
+    return out
+
+
+def test_the_reference_does_not_depend_on_the_batch(llvm, tmp_path):
+    """Passes are folded one at a time and the rules read after each: a
+    first reference (MIN_PASSES), then one extended to a quarter of its
+    variance, are the same with one pass at a time and with batches of 5
+    (which render passes beyond the stopping point and drop them)."""
+    targets = [lambda _: 1.0, lambda out: float(out[0].variance_of_mean.mean()) / 4]
+    one = _reference(tmp_path / "one", executors.Local(), targets)
+    wide = _Wide(5)
+    five = _reference(tmp_path / "five", wide, targets)
+    assert max(wide.batches) > 1 and sum(wide.batches) > five[-1].passes   # some dropped
+    for a, b in zip(one, five):
+        assert a.passes == b.passes and a.passes >= references.MIN_PASSES
+        assert np.array_equal(a.mean, b.mean) and np.array_equal(a.m2, b.m2)
+        assert np.array_equal(a.image_means, b.image_means)
+    assert one[1].passes > one[0].passes
+
+
+class _Recording(executors.Local):
+    """This process, noting of every batch whether it was timed, and its scene."""
+
+    def __init__(self):
+        super().__init__()
+        self.calls = []
+
+    def render(self, batch, progress=None, timed=False):
+        self.calls.append((timed, {j.scene.key for j in batch}, len(batch)))
+        return super().render(batch, progress, timed)
+
+
+def test_the_renders_whose_times_are_reported_are_timed(llvm, tmp_path):
+    """A scene comparison with its speed stage: every render at the display
+    resolution (cost model, budgets) is in a timed batch, the ladder's are not
+    (but the compile renders, whose seconds are reported, are), and the
+    result names the node that timed them."""
+    recorder = _Recording()
+    profile = profiles.Profile("test", (), reference_max_seconds=10.0)
+    plan = profiles.SceneRun("furnace_sphere", 4, (4, 16), 2, max_depth=2,
+                             display=profiles.Display(32, (4, 16), renders=2, repeats=2))
+    run = Run(profile, "llvm_ad_rgb", str(tmp_path / "cache"), str(tmp_path / "out"),
+              executor=recorder)
+    result, _ = pipeline.compare_scene(run, plan, ["cosine_hemisphere", "path"])
+    small = Context(run, plan, plan.id, [])
+    stages.load(small)
+    display = {k for _, keys, _ in recorder.calls for k in keys} - {small.scene_key}
+    assert len(display) == 1                                  # the 32² scene
+    flags = {key: [timed for timed, keys, _ in recorder.calls if keys == {key}]
+             for key in (small.scene_key, *display)}
+    # compile, then two rungs and the reference's passes (one at a time here)
+    ladder = flags[small.scene_key]
+    assert ladder[0] and not any(ladder[1:]) and len(ladder) >= 4
+    # pilot, timing plan, warm-up, two budgets; then the display reference
+    speed = flags[display.pop()]
+    assert speed[:5] == [True] * 5 and not any(speed[5:]) and len(speed) > 5
+    assert result.speed.timed_on == [executors.node_name()]
+
+
+def test_executor_ray_without_ray_says_how_to_install_it(llvm, tmp_path, monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "ray", None)              # import ray fails
+    monkeypatch.delitem(sys.modules, "mcillum.validation.ray_executor", raising=False)
+    code = cli.main(["validate", "--executor", "ray", "--scenes", "cap_plane", "--no-speed",
+                     "--out", str(tmp_path / "out"), "--cache", str(tmp_path / "cache")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == cli.EXIT_FAILED and len(err) == 1, err
+    assert "pip install 'mcillum[ray]'" in err[0] and "Traceback" not in err[0]
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["--ray-address", "auto"], "--ray-address and --ray-workers need --executor ray"),
+    (["--ray-workers", "2"], "--ray-address and --ray-workers need --executor ray"),
+    (["--executor", "ray", "--ray-workers", "0"], "--ray-workers must be >= 1"),
+    (["--executor", "dask"], "invalid choice: 'dask'")])
+def test_ray_options_are_checked(argv, says, capsys, tmp_path):
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["validate", "--out", str(tmp_path), *argv])
+    assert exit_.value.code == cli.EXIT_USAGE
+    assert says in capsys.readouterr().err
+
+
+def test_unknown_executor_kind():
+    with pytest.raises(ValueError, match="unknown executor 'dask'"):
+        executors.start("dask")
+
+
+def test_ray_is_an_optional_extra():
+    """pyproject pins Ray in the `ray` extra (a 2.x minor), not in the
+    dependencies, and declares the `ray` test marker."""
+    import tomllib
+    with open(os.path.join(os.path.dirname(__file__), "..", "pyproject.toml"), "rb") as f:
+        project = tomllib.load(f)
+    deps = project["project"]
+    assert not any(d.startswith("ray") for d in deps["dependencies"])
+    pins = deps["optional-dependencies"]["ray"]
+    assert len(pins) == 1 and pins[0].startswith("ray==2.") and pins[0].endswith(".*")
+    markers = project["tool"]["pytest"]["ini_options"]["markers"]
+    assert any(m.startswith("ray:") for m in markers)
