@@ -66,6 +66,9 @@ class UnreachableContentError(ValueError):
             f"set <boolean name=\"allow_unreachable\" value=\"true\"/> on the integrator)"
         )
 
+    def __reduce__(self):        # (pickled with its own arguments: a Ray worker sends it)
+        return type(self), (self.integrator, self.problems)
+
 
 _FOR_DELTA_LIGHTS = "use emitter_sampling or mis (or Mitsuba's 'path')"
 _FOR_DELTA_LOBES = "use bsdf_sampling or mis (or Mitsuba's 'path')"

@@ -18,18 +18,20 @@ from mcillum.validation import (cli, executors, jobs, pipeline, profiles, refere
 from mcillum.validation.context import Context, Run
 
 
-def _lone_sphere(tmp_path, res=8) -> Context:
-    """lone_sphere under the generated sg map (an absolute path into the cache)."""
+def _context(tmp_path, scene="lone_sphere", defines=None, res=8) -> Context:
+    """A loaded scene as a validation context (lone_sphere under the
+    generated sg map: an absolute path into the cache)."""
+    defines = {"envmap": "sg"} if defines is None else defines
     profile = profiles.Profile("test", ())
-    plan = profiles.SceneRun("lone_sphere", res, (4,), 2, max_depth=2, defines={"envmap": "sg"})
+    plan = profiles.SceneRun(scene, res, (4,), 2, max_depth=2, defines=defines)
     ctx = Context(Run(profile, "llvm_ad_rgb", str(tmp_path / "cache"), str(tmp_path / "out")),
-                  plan, "lone_sphere", ["cosine_hemisphere"], dict(plan.defines))
+                  plan, scene, ["cosine_hemisphere"], dict(plan.defines))
     stages.load(ctx)
     return ctx
 
 
 def test_a_job_travels_without_its_objects_and_renders_the_same(llvm, tmp_path):
-    ctx = _lone_sphere(tmp_path)
+    ctx = _context(tmp_path)
     job = ctx.job(jobs.make("cosine_hemisphere", ctx.params), 16, 7)
     here = executors.Local().render([job])[0]
     sent = pickle.loads(pickle.dumps(job))
@@ -42,28 +44,37 @@ def test_a_job_travels_without_its_objects_and_renders_the_same(llvm, tmp_path):
     assert not np.array_equal(here.image, other.image)     # (the seed decides)
 
 
-def test_a_node_without_the_files_renders_from_a_copy(llvm, tmp_path):
-    """Another machine: the scene file, its includes and the map (a file in
-    the driver's cache, given by absolute path) are not at these paths."""
-    ctx = _lone_sphere(tmp_path)
+@pytest.mark.parametrize("scene, defines", [("lone_sphere", {"envmap": "sg"}),
+                                             ("sky_sphere", {})])
+def test_a_node_without_the_files_renders_from_a_copy(llvm, tmp_path, monkeypatch, scene,
+                                                     defines):
+    """Another machine: the scene file, its includes and the map are not at
+    the driver's paths there (a generated map is a file in the driver's
+    cache, given by absolute path; sky_sphere's default map is given as
+    scenes/../envmaps/…, not normalised)."""
+    monkeypatch.setenv("MCILLUM_CACHE", str(tmp_path / "node-cache"))
+    ctx = _context(tmp_path, scene, defines)
     spec, integrator = ctx.scene_spec, jobs.make("cosine_hemisphere", ctx.params)
     content = jobs.scene_files(spec)
-    assert spec.path in content and dict(spec.defines)["envmap"] in content
+    envmap = dict(spec.defines)["envmap"]
+    assert spec.path in content and os.path.abspath(envmap) in content
     elsewhere = "/no-such-node-dir"
 
     def moved(path):
         return elsewhere + path
 
-    far = jobs.SceneSpec(moved(spec.path),
-                         tuple((k, moved(v) if v in content else v) for k, v in spec.defines),
-                         spec.key)
+    # what a driver elsewhere sends: its own paths, as it has them
+    far = jobs.SceneSpec(moved(spec.path), tuple(
+        (k, moved(v) if os.path.isabs(v) and os.path.exists(v) else v)
+        for k, v in spec.defines), spec.key)
     shop = jobs.Workshop()
     out = shop.run(jobs.Job(far, integrator, 16, 3),
                    lambda: {moved(p): data for p, data in content.items()})
-    assert shop._copies is not None and not os.path.exists(elsewhere)
+    assert shop.copied == [spec.key] and not os.path.exists(elsewhere)
+    assert os.path.isdir(tmp_path / "node-cache" / "scene_copies" / spec.key)
     here = jobs.Workshop()
     same = here.run(jobs.Job(spec, integrator, 16, 3), lambda: content)
-    assert here._copies is None                              # its own files: no copy
+    assert here.copied == []                                 # its own files: no copy
     assert np.array_equal(out.image, same.image)
 
 

@@ -230,6 +230,8 @@ def _validate(args) -> int:
         raise _Usage("--ray-address and --ray-workers need --executor ray")
     if args.ray_workers is not None and args.ray_workers < 1:
         raise _Usage(f"--ray-workers must be >= 1, got {args.ray_workers}")
+    if args.executor == "ray":
+        executors.check_ray()
     files.make_dir(args.out, "--out")
     if args.junit:
         files.check_output(args.junit, "--junit")

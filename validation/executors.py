@@ -25,15 +25,42 @@ from .jobs import Workshop
 KINDS = ("local", "ray")
 
 
-class Local:
-    """Every render in this process, one after another."""
+class Executor:
+    """What every executor shares: the nodes that timed renders, and closing."""
 
-    kind = "local"
+    kind = ""
     parallelism = 1          # renders at once
 
     def __init__(self):
-        self.workshop = Workshop()
         self.timed_nodes: set[str] = set()
+
+    def timed_on(self) -> list[str]:
+        """The nodes that rendered timed jobs since the last call."""
+        nodes, self.timed_nodes = sorted(self.timed_nodes), set()
+        return nodes
+
+    def close(self) -> None:
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        try:
+            self.close()
+        except Exception:  # noqa: BLE001  (never hide why the run stopped)
+            if exc[0] is None:
+                raise
+
+
+class Local(Executor):
+    """Every render in this process, one after another."""
+
+    kind = "local"
+
+    def __init__(self):
+        super().__init__()
+        self.workshop = Workshop()
 
     def render(self, jobs, progress=None, timed: bool = False) -> list:
         """Render ``jobs`` in order; ``progress(job)`` after each."""
@@ -46,28 +73,31 @@ class Local:
             self.timed_nodes.add(node_name())
         return out
 
-    def timed_on(self) -> list[str]:
-        """The nodes that rendered timed jobs since the last call."""
-        nodes, self.timed_nodes = sorted(self.timed_nodes), set()
-        return nodes
-
     def describe(self) -> dict:
         return {"kind": self.kind, "workers": 1, "nodes": [node_name()],
                 "note": "one render at a time in this process"}
-
-    def close(self) -> None:
-        pass
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
 
 def node_name() -> str:
     """This machine, as the results name it."""
     return platform.node() or "localhost"
+
+
+RAY_MISSING = ("--executor ray needs Ray, which is not installed: pip install "
+               "'mcillum[ray]' (or use --executor local)")
+
+
+def check_ray() -> None:
+    """Raise a one-line UserError saying how to install Ray, if it is not."""
+    import importlib.util
+
+    from mcillum.errors import UserError
+    try:
+        found = importlib.util.find_spec("ray") is not None
+    except (ValueError, AttributeError):    # (sys.modules["ray"] is None)
+        found = False
+    if not found:
+        raise UserError(RAY_MISSING)
 
 
 def start(kind: str = "local", address: str | None = None, workers: int | None = None,

@@ -17,12 +17,11 @@ layout when the files it finds differ (:meth:`Workshop.scene`).
 
 from __future__ import annotations
 
-import atexit
 import os
-import shutil
-import tempfile
 from collections import OrderedDict
 from dataclasses import dataclass, field
+
+from mcillum import files as mcillum_files
 
 from . import renders, scenes
 
@@ -99,7 +98,7 @@ class Workshop:
     def __init__(self):
         self.scenes: OrderedDict[str, object] = OrderedDict()
         self.integrators: dict[tuple, object] = {}
-        self._copies: str | None = None
+        self.copied: list[str] = []         # scene keys rendered from a copy
 
     def run(self, job: Job, files=None) -> renders.Render:
         """Render ``job`` (with its live scene and integrator when it has
@@ -132,19 +131,22 @@ class Workshop:
         content = files()
         if all(_same(path, data) for path, data in content.items()):
             return spec.path, defines
-        if self._copies is None:
-            self._copies = tempfile.mkdtemp(prefix="mcillum-scenes-")
-            atexit.register(shutil.rmtree, self._copies, True)
-        root = os.path.join(self._copies, spec.key)
+        # a copy with the same layout, kept by content key in this node's
+        # cache (each file written whole: workers of one node may share it)
+        root = mcillum_files.cache_dir("scene_copies", spec.key)
         moved = {}
         for path, data in content.items():
             moved[path] = os.path.join(root, path.lstrip(os.sep))
-            os.makedirs(os.path.dirname(moved[path]), exist_ok=True)
-            with open(moved[path], "wb") as f:
-                f.write(data)
+            if not _same(moved[path], data):
+                os.makedirs(os.path.dirname(moved[path]), exist_ok=True)
+                with mcillum_files.atomic_path(moved[path]) as tmp:
+                    with open(tmp, "wb") as f:
+                        f.write(data)
         # relative references follow the copied layout; absolute ones come
         # from $-parameters (a map's checked file): point them at the copies
-        return moved[spec.path], {k: moved.get(v, v) for k, v in defines.items()}
+        self.copied.append(spec.key)
+        return moved[spec.path], {k: moved.get(os.path.abspath(v), v) if os.path.isabs(v)
+                                  else v for k, v in defines.items()}
 
 
 def _same(path: str, data: bytes) -> bool:

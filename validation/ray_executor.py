@@ -12,10 +12,11 @@ cluster (``num_cpus=1``), or per GPU for a cuda variant (``num_gpus=1``);
 * Timed renders go to the first worker only, queued there in order (an
   actor runs its calls one at a time), while the rest of the run waits:
   nothing else renders meanwhile. Each render says on which node it ran.
-* A worker that dies is restarted and its calls are run again
-  (``max_restarts``/``max_task_retries`` -1): the seeds are in the jobs,
-  so the images are the same. A render that raises fails the run with the
-  worker's own exception, as a local run would, not a Ray traceback.
+* A worker that dies is restarted and its calls are run again (up to
+  :data:`RETRIES` times: a render that kills its worker every time stops
+  the run, saying so): the seeds are in the jobs, so the images are the
+  same. A render that raises fails the run with the innermost exception
+  the worker saw (what a local run reports), not a Ray traceback.
 * Scene files travel once per scene (:func:`~.jobs.scene_files`, in Ray's
   object store): a worker fetches them only for a scene new to it, and
   renders from its own copy where its files differ (another machine).
@@ -25,25 +26,30 @@ Ray is an optional dependency (``pip install 'mcillum[ray]'``).
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
+import pickle
 import platform
+import signal
 
+from mcillum import errors
 from mcillum.errors import UserError
 
 from . import jobs as jobs_
-from .executors import node_name
+from .executors import RAY_MISSING, Executor, node_name
 
 try:
     import ray
 except ModuleNotFoundError as err:  # (only `--executor ray` imports this module)
     if err.name != "ray":
         raise
-    raise UserError("--executor ray needs Ray, which is not installed: pip install "
-                    "'mcillum[ray]' (or use --executor local)") from None
+    raise UserError(RAY_MISSING) from None
 
 #: Calls in flight per worker: one rendering, one waiting (no idle gap).
 DEPTH = 2
+#: Restarts of a worker that died, and retries of the calls it was running.
+RETRIES = 3
 #: Jobs per call at most: a call costs ~2 ms of Ray's time, a small render
 #: of the quick profile about as much (measured, 8² × 64 spp).
 MAX_CHUNK = 16
@@ -61,62 +67,86 @@ class RenderWorker:
     """One Ray actor: a warm Mitsuba in the run's variant."""
 
     def __init__(self, variant: str):
-        import mcillum  # noqa: F401  (before Dr.Jit: its LLVM)
+        # (this module's imports loaded mcillum first: Dr.Jit has its LLVM)
         from . import renders
         renders.set_variant(variant)
         self.workshop = jobs_.Workshop()
         self.node = f"{node_name()} ({ray.util.get_node_ip_address()})"
 
-    def versions(self) -> dict:
-        return _versions()
+    def versions(self) -> tuple[dict, str]:
+        """(what decides the images here, this worker's node)."""
+        return _versions(), self.node
 
     def render(self, batch, files):
         """(the renders of ``batch`` in order, this worker's node); ``files``
         maps scene keys to ObjectRefs of their files (fetched only for a
-        scene new to this worker: refs inside a dict are not fetched by Ray)."""
-        return [self.workshop.run(job, lambda job=job: ray.get(files[job.scene.key]))
-                for job in batch], self.node
+        scene new to this worker: refs inside a dict are not fetched by Ray).
+        Raises the innermost exception (Mitsuba wraps a plugin's, and a
+        pickled exception loses its ``__cause__``)."""
+        try:
+            return [self.workshop.run(job, lambda job=job: ray.get(files[job.scene.key]))
+                    for job in batch], self.node
+        except Exception as err:
+            cause = errors.root_cause(err).with_traceback(None)
+            try:                   # (one that cannot travel goes as its message)
+                pickle.loads(pickle.dumps(cause))
+            except Exception:  # noqa: BLE001
+                cause = RuntimeError(errors.message(cause))
+            raise cause from None
 
 
 def _versions() -> dict:
+    """Versions, and a hash of mcillum's own code (two checkouts of one
+    version may differ; scene files travel with the jobs)."""
+    import importlib
+
     import drjit as dr
     import mitsuba as mi
-    from importlib import metadata
-    try:
-        own = metadata.version("mcillum")
-    except metadata.PackageNotFoundError:
-        own = "?"
-    return {"mcillum": own, "mitsuba": mi.__version__, "drjit": dr.__version__,
-            "python": platform.python_version()}
+    h = hashlib.sha256()
+    for package in ("mcillum", "mcillum.integrators", "mcillum.envmaps", "mcillum.validation"):
+        folder = os.path.dirname(importlib.import_module(package).__file__)
+        for name in sorted(n for n in os.listdir(folder) if n.endswith(".py")):
+            with open(os.path.join(folder, name), "rb") as f:
+                h.update(f"{package}.{name}".encode() + hashlib.sha256(f.read()).digest())
+    return {"mitsuba": mi.__version__, "drjit": dr.__version__,
+            "python": platform.python_version(), "mcillum code": h.hexdigest()[:16]}
 
 
-class RayExecutor:
+class RayExecutor(Executor):
     """The executor of :mod:`.executors` on Ray (see the module doc)."""
 
     kind = "ray"
 
     def __init__(self, address: str | None, workers: int | None, variant: str):
+        super().__init__()
         self.address = address
-        cuda = variant.startswith("cuda")
-        if address is None:          # a local instance on this machine
-            # (its notice that token authentication is on, the default, would
-            # open every run's output; a warning that it is off still shows)
-            log = logging.getLogger("ray._private.authentication.authentication_token_setup")
-            log.addFilter(_token_notice)
-            try:
-                ray.init(num_cpus=max(os.cpu_count() or 1, workers or 0),
-                         include_dashboard=False, logging_level=logging.WARNING)
-            finally:
-                log.removeFilter(_token_notice)
-        else:
-            ray.init(address=address, logging_level=logging.WARNING)
+        self.nodes: list[str] = []
+        self._files: dict[str, object] = {}
+        # ray.init replaces the SIGTERM handler with sys.exit: keep ours
+        # (errors.sigterm_as_interrupt: exit 143, saying what was left)
+        term = signal.getsignal(signal.SIGTERM)
         try:
-            self._start_workers(workers, variant, cuda)
+            if address is None:    # a new instance on this machine, not one running here
+                # (its notice that token authentication is on, the default, would
+                # open every run's output; a warning that it is off still shows)
+                log = logging.getLogger(
+                    "ray._private.authentication.authentication_token_setup")
+                log.addFilter(_token_notice)
+                try:
+                    ray.init(address="local", num_cpus=max(os.cpu_count() or 1, workers or 0),
+                             include_dashboard=False, logging_level=logging.WARNING)
+                finally:
+                    log.removeFilter(_token_notice)
+            else:
+                ray.init(address=address, logging_level=logging.WARNING)
+        finally:
+            if term is not None:
+                signal.signal(signal.SIGTERM, term)
+        try:
+            self._start_workers(workers, variant, variant.startswith("cuda"))
         except BaseException:
             ray.shutdown()
             raise
-        self._files: dict[str, object] = {}
-        self.timed_nodes: set[str] = set()
 
     def _start_workers(self, workers, variant, cuda) -> None:
         resource = "GPU" if cuda else "CPU"
@@ -128,14 +158,21 @@ class RayExecutor:
                                f"--ray-workers {have} or fewer" if have else
                                f"a {variant} run needs at least one"))
         options = {"num_gpus": 1} if cuda else {"num_cpus": 1}
-        actor = ray.remote(max_restarts=-1, max_task_retries=-1, **options)(RenderWorker)
+        actor = ray.remote(max_restarts=RETRIES, max_task_retries=RETRIES,
+                           **options)(RenderWorker)
         self.workers = [actor.remote(variant) for _ in range(n)]
         self.parallelism = n
         mine = _versions()
-        for theirs in ray.get([w.versions.remote() for w in self.workers]):
-            if theirs != mine:
-                raise UserError(f"a Ray worker has {theirs}, this driver {mine}: install the "
-                                "same mcillum, Mitsuba, Dr.Jit and Python on every node")
+        for theirs, node in _get([w.versions.remote() for w in self.workers]):
+            differ = {k: (v, theirs.get(k)) for k, v in mine.items() if theirs.get(k) != v}
+            if differ:
+                raise UserError(f"Ray worker on {node} differs from this driver in "
+                                + ", ".join(f"{k} ({b} there, {a} here)"
+                                            for k, (a, b) in differ.items())
+                                + ": install the same mcillum, Mitsuba, Dr.Jit and Python "
+                                  "on every node")
+            if node not in self.nodes:
+                self.nodes.append(node)
 
     # ---------------------------------- Render ---------------------------------------
 
@@ -185,14 +222,9 @@ class RayExecutor:
             raise
         return out
 
-    def timed_on(self) -> list[str]:
-        nodes, self.timed_nodes = sorted(self.timed_nodes), set()
-        return nodes
-
     def describe(self) -> dict:
-        nodes = sorted({n["NodeManagerAddress"] for n in ray.nodes() if n.get("Alive")})
         return {"kind": self.kind, "address": self.address or "a local instance",
-                "workers": self.parallelism, "nodes": nodes, "ray": ray.__version__,
+                "workers": self.parallelism, "nodes": sorted(self.nodes), "ray": ray.__version__,
                 "note": f"statistical renders ran up to {self.parallelism} at a time (their "
                         "seconds include the other workers' load); timed ones one at a "
                         "time on one worker (speed.timed_on)"}
@@ -202,19 +234,14 @@ class RayExecutor:
             ray.kill(w)
         ray.shutdown()
 
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
-
 
 def _token_notice(record) -> bool:
     return "Token authentication is enabled" not in record.getMessage()
 
 
 def _get(ref):
-    """``ray.get``, raising what the worker raised (its message, its type)."""
+    """``ray.get``, raising what the worker raised (its message, its type),
+    or a one-line error for a worker that died once more than RETRIES allow."""
     try:
         return ray.get(ref)
     except ray.exceptions.RayTaskError as err:
@@ -222,3 +249,9 @@ def _get(ref):
         if isinstance(cause, BaseException):
             raise cause.with_traceback(None) from None
         raise
+    except ray.exceptions.RayActorError as err:
+        why = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise UserError(f"a Ray render worker stopped for good (restarted up to {RETRIES} "
+                        f"times): {why}; a render that kills its worker, a node short of "
+                        "memory, or a worker that cannot start (the run's variant on that "
+                        "node): --executor local shows a render's own error") from None

@@ -180,7 +180,8 @@ def ensure(ctx, target: float) -> Reference:
     Passes are folded in one at a time, pass i with seed i of the "reference"
     stream, and the rules are read after each: the result does not depend on
     how many the executor renders at once (:func:`_batch`; passes beyond the
-    stopping point are dropped).
+    stopping point are dropped), but for the time cap, which is read only
+    before more passes are rendered (a time cap is not reproducible anyway).
     """
     profile = ctx.run.profile
     spp_per_pass, max_spp = profile.reference_spp_per_pass, profile.reference_max_spp
@@ -209,12 +210,15 @@ def ensure(ctx, target: float) -> Reference:
         if ref is not None and ref.spp + spp_per_pass > max_spp:
             ref.capped = f"spp cap {max_spp}"
             break
-        if ref is not None and rendered and time.perf_counter() - start > max_seconds:
-            ref.capped = f"time cap {max_seconds:g} s"
-            break
         if not outs:
+            # (the clock is read before rendering more, never against passes
+            # already rendered: those are folded in)
+            if ref is not None and rendered and time.perf_counter() - start > max_seconds:
+                ref.capped = f"time cap {max_seconds:g} s"
+                break
             done = ref.passes if ref else 0
-            n = _batch(ref, target, ctx.run.executor.parallelism, (max_spp // spp_per_pass) - done)
+            n = _batch(ref, target, ctx.run.executor.parallelism, (max_spp // spp_per_pass) - done,
+                       max_seconds - (time.perf_counter() - start))
             outs = ctx.render([ctx.job(integrator, spp_per_pass, stream.seed(done + i))
                                for i in range(n)], None)
         out = outs.pop(0)
@@ -239,17 +243,21 @@ def ensure(ctx, target: float) -> Reference:
     return ref
 
 
-def _batch(ref: Reference | None, target: float, parallelism: int, room: int) -> int:
+def _batch(ref: Reference | None, target: float, parallelism: int, room: int,
+           seconds_left: float = np.inf) -> int:
     """How many passes to render at once: 1 with one worker; else the passes
     the reference still needs (to MIN_PASSES, then by variance ∝ 1/passes),
-    at least one per worker, at most 64 per worker and ``room`` (the spp cap)."""
+    at least one per worker, at most 64 per worker, ``room`` (the spp cap)
+    and what fits in ``seconds_left`` (the time cap) at the passes' pace so far."""
     if parallelism <= 1:
         return 1
     passes = ref.passes if ref else 0
+    if ref is not None and ref.seconds > 0:
+        room = min(room, max(1, int(seconds_left * parallelism * passes / ref.seconds)))
     if passes < MIN_PASSES:
         need = MIN_PASSES - passes
-    elif target <= 0:                     # (a noiseless target: until a cap)
-        need = 64 * parallelism
     else:
-        need = int(np.ceil(passes * float(ref.variance_of_mean.mean()) / target)) - passes
+        ratio = float(ref.variance_of_mean.mean()) / target if target > 0 else np.inf
+        # (a noiseless target, or a variance that is not finite: until a cap)
+        need = int(np.ceil(passes * ratio)) - passes if np.isfinite(ratio) else 64 * parallelism
     return max(1, min(max(need, parallelism), 64 * parallelism, room))

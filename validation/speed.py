@@ -73,12 +73,12 @@ def display(ctx) -> None:
 
 def time_costs(ctx) -> None:
     """A cost model t = a + b·spp per estimator (see the module doc)."""
+    ctx.run.executor.timed_on()                         # (forget earlier stages')
     if ctx.timings is not None:                         # from the cache
         ctx.costs = {n: costs.fit_cost(t) for n, t in ctx.timings.items()}
         return
     sub, d = ctx.display, ctx.plan.display
     stream = seeds.stream("speed_timing")
-    sub.run.executor.timed_on()                         # (forget earlier stages')
     # pilot: the fastest of 3 renders at 1 and 16 spp (a ≈ t(1) − b)
     pilot = {n: costs.fit_cost({s: [min(t)] * 2 for s, t in spps.items()})
              for n, spps in timing.timed(sub.run.executor, _job(sub),
