@@ -138,7 +138,7 @@ def test_ray_run_gives_the_local_images_even_when_a_worker_dies(tmp_path):
             for d in ("local", "ray"))
     assert a == b and len(a) >= 15          # (4 estimators: renders, means, evidence)
     for name in a:
-        x, y = _exr_pixels(str(tmp_path / "local" / name)), _exr_pixels(str(tmp_path / "ray" / name))
+        x, y = (_exr_pixels(str(tmp_path / d / name)) for d in ("local", "ray"))
         assert x.keys() == y.keys(), name
         for layer in x:
             assert x[layer].dtype == y[layer].dtype and \

@@ -6,7 +6,7 @@ For every scene of a profile and every case of its failures group, a
     scene comparison   load → choose estimators → K renders per rung of an spp
                        ladder → reference → statistics → quadrature (estimators
                        of N directions: equal rays, bias against N, calibration)
-                       → checks → images; then
+                       → release the scene → checks → images; then
                        the speed-and-images stage at the display resolution
                        (speed.py): cost model → equal-time renders → reference
                        → relMSE, efficiency, ranking, FLIP → images
@@ -39,14 +39,15 @@ from .context import Context, Run
 from .progress import Progress
 
 SCENE = (stages.load, stages.choose_estimators, stages.render_ladder, stages.build_reference,
-         stages.measure, quadrature.measure, stages.judge_scene, stages.save_images)
+         stages.measure, quadrature.measure, stages.release, stages.judge_scene,
+         stages.save_images)
 SPEED = (speed.display, speed.time_costs, speed.render_budgets, speed.display_reference,
-         speed.measure_speed, speed.save_display)
+         speed.release_display, speed.measure_speed, speed.save_display)
 CASE = (stages.load, stages.probe_refusals, stages.render_seeds, stages.build_reference,
-        stages.tail_numbers, stages.test_bias, stages.split_sun, stages.judge_case,
-        stages.save_evidence)
+        stages.tail_numbers, stages.test_bias, stages.release, stages.split_sun,
+        stages.judge_case, stages.save_evidence)
 SWEEP_POINT = (stages.load, stages.choose_estimators, stages.render_seeds,
-               stages.build_reference, stages.tail_numbers)
+               stages.build_reference, stages.tail_numbers, stages.release)
 
 
 def run_stages(stage_list, ctx: Context) -> Context:

@@ -32,6 +32,7 @@ import os
 import pickle
 import platform
 import signal
+from collections import OrderedDict
 
 from mcillum import errors
 from mcillum.errors import UserError
@@ -50,6 +51,9 @@ except ModuleNotFoundError as err:  # (only `--executor ray` imports this module
 DEPTH = 2
 #: Restarts of a worker that died, and retries of the calls it was running.
 RETRIES = 3
+#: Scenes whose files stay in the object store (a validation renders one
+#: scene after another; the full profile has some 70, each with its map).
+FILES_KEPT = 4
 #: Jobs per call at most: a call costs ~2 ms of Ray's time, a small render
 #: of the quick profile about as much (measured, 8² × 64 spp).
 MAX_CHUNK = 16
@@ -121,7 +125,7 @@ class RayExecutor(Executor):
         super().__init__()
         self.address = address
         self.nodes: list[str] = []
-        self._files: dict[str, object] = {}
+        self._files: OrderedDict[str, object] = OrderedDict()
         # ray.init replaces the SIGTERM handler with sys.exit: keep ours
         # (errors.sigterm_as_interrupt: exit 143, saying what was left)
         term = signal.getsignal(signal.SIGTERM)
@@ -177,10 +181,16 @@ class RayExecutor(Executor):
     # ---------------------------------- Render ---------------------------------------
 
     def _files_of(self, batch) -> dict:
-        """{scene key: ObjectRef of its files} of the scenes of ``batch``."""
+        """{scene key: ObjectRef of its files} of the scenes of ``batch``
+        (the last few scenes' stay in the object store: a restarted worker
+        may need them again)."""
         for job in batch:
-            if job.scene.key not in self._files:
-                self._files[job.scene.key] = ray.put(jobs_.scene_files(job.scene))
+            key = job.scene.key
+            if key not in self._files:
+                self._files[key] = ray.put(jobs_.scene_files(job.scene))
+                while len(self._files) > FILES_KEPT:
+                    self._files.popitem(last=False)
+            self._files.move_to_end(key)
         return {job.scene.key: self._files[job.scene.key] for job in batch}
 
     def render(self, jobs, progress=None, timed: bool = False) -> list:

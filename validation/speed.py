@@ -236,6 +236,11 @@ def save_display(ctx) -> None:
                          "budget_seconds": budget}, layers)
 
 
+def release_display(ctx) -> None:
+    """The display scene is rendered no more (stages.release)."""
+    stages.release(ctx.display)
+
+
 # ---------------------------------- Cache ----------------------------------------
 
 def _cache_file(ctx) -> tuple[str, str]:
