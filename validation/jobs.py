@@ -5,14 +5,14 @@ A :class:`Job` names everything that decides its image: the scene
 content key), the integrator (:class:`Integrator`: plugin name and
 properties), spp and seed. The process that made a job also keeps the loaded
 scene and the integrator in it (``live``); they never travel. Another process
-rebuilds them from the names in a :class:`Workshop`, which caches scenes by
-content key and integrators by name and properties, so that a worker loads
-each scene once and compiles each kernel once.
+rebuilds them from the names in a :class:`Workshop`, which keeps the scene it
+is rendering (by content key) and the integrators it made (by name and
+properties), so that a worker loads each scene and compiles each kernel once.
 
 A worker on another machine may lack the scene's files (a generated map lives
 in the driver's cache) or have them elsewhere: :func:`scene_files` reads them
-on the driver, and a workshop given them writes a private copy with the same
-layout when the files it finds differ (:meth:`Workshop.scene`).
+on the driver, and a workshop given them writes a copy with the same layout
+into its node's cache when the files it finds differ (:meth:`Workshop.scene`).
 """
 
 from __future__ import annotations
@@ -115,8 +115,8 @@ class Workshop:
 
     def scene(self, spec: SceneSpec, files=None):
         """The scene of ``spec``, loaded once per content key: from its own
-        files when they are here with the same bytes, else from a private
-        copy of ``files()``."""
+        files when they are here with the same bytes, else from a copy of
+        ``files()`` in this node's cache."""
         if spec.key not in self.scenes:
             self.scenes[spec.key] = renders.load_resolved(*self._local(spec, files))
             while len(self.scenes) > SCENES_KEPT:
