@@ -339,3 +339,10 @@ def test_strict_exit_code_counts_inconclusive_checks(tmp_path, monkeypatch, caps
     with pytest.raises(SystemExit) as exit_:
         cli.main([*args, "--seed-set", "1000"])
     assert exit_.value.code == 2
+
+
+@pytest.mark.parametrize("ev, text", [(-0.0, "x"), (0.04, "x"), (-0.02, "x"),
+                                      (1.0, "x·2<sup>+1.0</sup>"), (-2.34, "x·2<sup>-2.3</sup>")])
+def test_tone_mapping_scale_reads_plainly(ev, text):
+    """An exposure that rounds to 0 reads as `x`, not `x·2^-0.0`."""
+    assert report._scaling(ev) == text

@@ -151,6 +151,12 @@ def _executor(where: dict) -> str:
             f"node{'s' if nodes != 1 else ''})")
 
 
+def _scaling(ev: float) -> str:
+    """The tone mapping's scale factor as the page writes it: ``x`` when the
+    exposure rounds to 0 (not ``x·2^-0.0``), else ``x·2^ev``."""
+    return "x" if abs(ev) < 0.05 else f"x·2<sup>{ev:+.1f}</sup>"
+
+
 def _timed_on(sp) -> str:
     if not sp.timed_on:
         return ""
@@ -200,7 +206,7 @@ def _speed_section(scene: SceneResult, run_dir: str, colours: dict) -> str:
 <p>Every estimator got the time Mitsuba's <code>path</code> needs for {top.path_spp} spp;
 its spp come from its own cost model t = a + b·spp. Reference: <code>path</code>,
 {ref_info.spp} spp in {ref_info.passes} passes{capped}.{_timed_on(sp)} Tone mapping for every image:
-x·2<sup>{ev:+.1f}</sup>, clipped to [0, 1], sRGB. Captions: spp and the measured time of the
+{_scaling(ev)}, clipped to [0, 1], sRGB. Captions: spp and the measured time of the
 render shown.</p>
 <div class=row>{''.join(row)}</div>
 <h4>Relative error |x−r|/(|r|+{metrics.EPSILON}) of these renders</h4>
