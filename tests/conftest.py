@@ -5,6 +5,7 @@ twins.py."""
 from __future__ import annotations
 
 import ipaddress
+import signal
 import socket
 from pathlib import Path
 
@@ -26,6 +27,14 @@ SCENES = ROOT / "scenes"
 VARIANTS = ["scalar_rgb", "llvm_ad_rgb"]
 
 renders.set_variant("llvm_ad_rgb")      # the registry fills when a variant is set
+
+# A test run started in the background by a non-interactive shell (`nohup make
+# test &`) inherits SIGINT ignored, and so would every process it starts: the
+# tests that send SIGINT to a render or a CLI run would see it vanish. A
+# handler (unlike SIG_IGN) resets to the default in a child, whose Python then
+# raises KeyboardInterrupt as it does under a terminal.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def estimators() -> list[str]:
