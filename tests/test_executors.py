@@ -199,3 +199,32 @@ def test_ray_is_an_optional_extra():
     assert len(pins) == 1 and pins[0].startswith("ray==2.") and pins[0].endswith(".*")
     markers = project["tool"]["pytest"]["ini_options"]["markers"]
     assert any(m.startswith("ray:") for m in markers)
+
+
+def test_scene_files_go_once_and_the_last_few_stay(monkeypatch):
+    """Each scene's files are put into Ray's object store once; a call gets
+    the files of every scene of its batch, even of more scenes than the store
+    keeps; afterwards the last FILES_KEPT scenes stay (without Ray: `ray.put`
+    replaced by a counter)."""
+    pytest.importorskip("ray", reason="Ray is not installed: pip install -e '.[ray]'")
+    from mcillum.validation import ray_executor
+    put = []
+    monkeypatch.setattr(ray_executor.ray, "put", lambda files: put.append(files) or files)
+    monkeypatch.setattr(jobs, "scene_files", lambda spec: f"files of {spec.key}")
+    executor = object.__new__(ray_executor.RayExecutor)
+    executor._files = ray_executor.OrderedDict()
+    kept = ray_executor.FILES_KEPT
+
+    def batch(*keys):
+        return [jobs.Job(jobs.SceneSpec(f"{k}.xml", (), k), jobs.Integrator("path", ()), 1, 0)
+                for k in keys]
+
+    many = [f"s{i}" for i in range(kept + 2)]           # s0 … s5 with 4 kept
+    assert executor._files_of(batch(*many, "s0")) == {k: f"files of {k}" for k in many}
+    assert len(put) == len(many)                        # s0 once in its batch
+    assert list(executor._files) == [*many[-kept + 1:], "s0"]   # s3 s4 s5 s0
+    executor._files_of(batch("s3"))                     # used again: kept longest
+    assert len(put) == len(many)
+    executor._files_of(batch("new"))
+    assert len(put) == len(many) + 1
+    assert list(executor._files) == ["s5", "s0", "s3", "new"]

@@ -184,14 +184,16 @@ class RayExecutor(Executor):
         """{scene key: ObjectRef of its files} of the scenes of ``batch``
         (the last few scenes' stay in the object store: a restarted worker
         may need them again)."""
+        refs = {}
         for job in batch:
             key = job.scene.key
             if key not in self._files:
                 self._files[key] = ray.put(jobs_.scene_files(job.scene))
-                while len(self._files) > FILES_KEPT:
-                    self._files.popitem(last=False)
             self._files.move_to_end(key)
-        return {job.scene.key: self._files[job.scene.key] for job in batch}
+            refs[key] = self._files[key]
+        while len(self._files) > FILES_KEPT:
+            self._files.popitem(last=False)
+        return refs
 
     def render(self, jobs, progress=None, timed: bool = False) -> list:
         """Render ``jobs`` (see :class:`~.executors.Local`); ``progress(job)``
