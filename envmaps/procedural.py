@@ -175,11 +175,6 @@ def sg(lobes: Lobes = SG_LOBES, width: int = WIDTH, height: int = HEIGHT,
     return bake(radiance, width, height, supersample)
 
 
-def sg_irradiance_on_axis(lam: float, amplitude) -> np.ndarray:
-    """∫_H a·e^{λ(cosθ−1)} cosθ dω for a plane facing the lobe axis."""
-    return 2 * np.pi * _rgb(amplitude) * (lam - 1 + np.exp(-lam)) / lam ** 2
-
-
 def irradiance(rgb: np.ndarray, normal=(0, 1, 0)) -> np.ndarray:
     """Irradiance ∫ L(v) max(0, n·v) dω of a discrete map (pixel quadrature).
 

@@ -28,7 +28,7 @@ def fibonacci_point(j, n, shift: mi.Point2f) -> mi.Point2f:
                       frac(j * (GOLDEN - 1.0) + shift.y))
 
 
-def square_to_cosine_polar(u: mi.Point2f) -> mi.Vector3f:
+def sample_cosine_polar(u: mi.Point2f) -> mi.Vector3f:
     """Cosine-weighted map of the (u, v) square, area-preserving in polar
     coordinates: cos θ = √(1 − u), φ = 2π v (Malley's method on the disk of
     radius √u), density cos θ / π."""
@@ -43,14 +43,14 @@ def cosine_polar_pdf(w: mi.Vector3f) -> mi.Float:
     return dr.select(w.z > 0, w.z * dr.inv_pi, 0.0)
 
 
-def cosine_polar_to_square(w: mi.Vector3f) -> mi.Point2f:
-    """Inverse of :func:`square_to_cosine_polar`: u = 1 − cos²θ, v = φ/2π."""
+def invert_cosine_polar(w: mi.Vector3f) -> mi.Point2f:
+    """Inverse of :func:`sample_cosine_polar`: u = 1 − cos²θ, v = φ/2π."""
     phi = dr.atan2(w.y, w.x)
     phi = dr.select(phi < 0, phi + dr.two_pi, phi)
     return mi.Point2f(1.0 - dr.square(w.z), phi * dr.inv_two_pi)
 
 
-def square_to_uniform_polar(u: mi.Point2f) -> mi.Vector3f:
+def sample_uniform_polar(u: mi.Point2f) -> mi.Vector3f:
     """Uniform map: cos θ = 1 − u, φ = 2π v, density 1/(2π)."""
     cos_t = 1.0 - u.x
     sin_t = dr.safe_sqrt(1.0 - dr.square(cos_t))
@@ -63,8 +63,8 @@ def uniform_polar_pdf(w: mi.Vector3f) -> mi.Float:
     return dr.select(w.z > 0, dr.inv_two_pi, 0.0)
 
 
-def uniform_polar_to_square(w: mi.Vector3f) -> mi.Point2f:
-    """Inverse of :func:`square_to_uniform_polar`."""
+def invert_uniform_polar(w: mi.Vector3f) -> mi.Point2f:
+    """Inverse of :func:`sample_uniform_polar`."""
     phi = dr.atan2(w.y, w.x)
     phi = dr.select(phi < 0, phi + dr.two_pi, phi)
     return mi.Point2f(1.0 - w.z, phi * dr.inv_two_pi)
@@ -72,8 +72,8 @@ def uniform_polar_to_square(w: mi.Vector3f) -> mi.Point2f:
 
 #: ``mapping`` → (sample, pdf, inverse) of the diffuse set.
 MAPPINGS = {
-    "cosine": (square_to_cosine_polar, cosine_polar_pdf, cosine_polar_to_square),
-    "uniform": (square_to_uniform_polar, uniform_polar_pdf, uniform_polar_to_square),
+    "cosine": (sample_cosine_polar, cosine_polar_pdf, invert_cosine_polar),
+    "uniform": (sample_uniform_polar, uniform_polar_pdf, invert_uniform_polar),
 }
 
 

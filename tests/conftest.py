@@ -16,7 +16,7 @@ import mcillum  # noqa: F401  (LLVM set-up before drjit; registers the plugins)
 import mitsuba as mi
 
 from mcillum.integrators import registry
-from mcillum.validation import renders
+from mcillum.validation.run import renders
 
 from twins import has_pdf_pair, plugin_class
 
@@ -165,3 +165,18 @@ def batch(scene, integrator, spp: int, k: int, first_seed: int = 0) -> np.ndarra
     """K independent renders (seeds first_seed … first_seed+k-1), (K, H, W, C)."""
     return np.stack([renders.render(scene, integrator, spp, seed).image
                      for seed in range(first_seed, first_seed + k)])
+
+
+def disagreements(first: dict, second: dict, first_ranking, second_ranking,
+                  tolerance: float = 0.15) -> list[str]:
+    """What two runs of the speed stage disagree on: efficiency ratios against
+    `path` ({name: Ratio}) more than ``tolerance`` apart, and pairs that one
+    run separates one way and the other the other way (costs.separated)."""
+    from mcillum.validation.stats import costs
+    out = [f"{n}: efficiency ÷ path {r.ratio:.3g} then {second[n].ratio:.3g}"
+           for n, r in first.items()
+           if n in second and abs(second[n].ratio / r.ratio - 1) > tolerance]
+    out += [f"{a} beat {b}, then {b} beat {a}"
+            for a, b in costs.separated(first_ranking)
+            if (b, a) in costs.separated(second_ranking)]
+    return out

@@ -29,7 +29,9 @@ import numpy as np
 import pytest
 
 from mcillum.integrators import registry
-from mcillum.validation import renders, scenes, statistics
+from mcillum.validation.plan import scenes
+from mcillum.validation.run import renders
+from mcillum.validation.stats import statistics
 
 import twins
 from conftest import ALL_ESTIMATORS, VARIANTS, batch, small

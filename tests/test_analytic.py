@@ -20,7 +20,9 @@ neither is claimed.
 import numpy as np
 import pytest
 
-from mcillum.validation import renders, statistics
+from mcillum.validation.run import renders
+
+from mcillum.validation.stats import statistics
 
 import twins
 from conftest import ALL_ESTIMATORS, SCENES, batch, small

@@ -1,4 +1,4 @@
-"""The cost model and the equal-time numbers (validation/costs.py) on
+"""The cost model and the equal-time numbers (validation/stats/costs.py) on
 synthetic timings and errors whose truth is known: the intervals cover it
 as often as they claim, exclude a wrong value, and the ranking ties only
 what it cannot tell apart. No rendering."""
@@ -7,8 +7,11 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from mcillum.validation import costs, speed
 from mcillum.validation.results import Interval
+from mcillum.validation.stages import speed
+from mcillum.validation.stats import costs
+
+from conftest import disagreements
 
 A, B = 4e-3, 2.5e-3                     # 4 ms per render, 2.5 ms per spp
 
@@ -66,12 +69,12 @@ def test_bootstrap_intervals_cover_the_truth_and_exclude_a_wrong_b():
     assert wrong <= trials // 20, wrong
 
 
-def test_mean_interval_is_student_t():
+def test_relmse_interval_is_student_t():
     values = [1.0, 2.0, 3.0, 4.0]
-    mean, ci = costs.mean_interval(values)
+    mean, ci = costs.relmse_interval(values)
     half = stats.t.ppf(0.975, 3) * np.std(values, ddof=1) / 2
     assert mean == 2.5 and ci == pytest.approx((2.5 - half, 2.5 + half))
-    assert costs.mean_interval([0.1, 0.1, 0.1, 9.0])[1].low == 0.0   # clipped: relMSE ≥ 0
+    assert costs.relmse_interval([0.1, 0.1, 0.1, 9.0])[1].low == 0.0   # clipped: relMSE ≥ 0
 
 
 def test_efficiency_ratio_interval_covers_the_true_ratio():
@@ -123,12 +126,17 @@ def test_budgets_grow_until_the_fixed_cost_is_a_tenth():
 
 def test_two_runs_are_compared_on_ratios_and_reversed_pairs():
     from mcillum.validation.results import Placement, Ratio
-    first = {"a": Ratio(2.0, Interval(1.8, 2.2)), "b": Ratio(0.5, Interval(0.4, 0.6)),
-             "path": Ratio(1.0, Interval(0.9, 1.1))}
-    ranked = [Placement("a", 1, []), Placement("path", 2, ["b"]), Placement("b", 2, ["path"])]
+    first = {"a": Ratio(ratio=2.0, ci=Interval(1.8, 2.2)),
+             "b": Ratio(ratio=0.5, ci=Interval(0.4, 0.6)),
+             "path": Ratio(ratio=1.0, ci=Interval(0.9, 1.1))}
+    ranked = [Placement(estimator="a", rank=1, tied_with=[]),
+              Placement(estimator="path", rank=2, tied_with=["b"]),
+              Placement(estimator="b", rank=2, tied_with=["path"])]
     assert costs.separated(ranked) == {("a", "path"), ("a", "b")}
-    assert costs.disagreements(first, first, ranked, ranked) == []
-    drifted = {**first, "b": Ratio(0.59, Interval(0.5, 0.7))}          # +18 %
-    reversed_ = [Placement("b", 1, []), Placement("a", 2, []), Placement("path", 3, [])]
-    found = costs.disagreements(first, drifted, ranked, reversed_)
+    assert disagreements(first, first, ranked, ranked) == []
+    drifted = {**first, "b": Ratio(ratio=0.59, ci=Interval(0.5, 0.7))}          # +18 %
+    reversed_ = [Placement(estimator="b", rank=1, tied_with=[]),
+                 Placement(estimator="a", rank=2, tied_with=[]),
+                 Placement(estimator="path", rank=3, tied_with=[])]
+    found = disagreements(first, drifted, ranked, reversed_)
     assert len(found) == 2 and "b: efficiency" in found[0] and "a beat b" in found[1]

@@ -18,7 +18,7 @@ statistics.compare as in test_agreement.py; fixed seeds):
   the set over many shifts); the unshifted set's points are not;
 * bayesian_hemisphere, biased by design, is exact in a furnace (weights
   and measure), its noise-corrected bias shrinks from N = 16 to 256, and
-  the calibration verdict follows a known error (quadrature.py's rules).
+  the calibration verdict follows a known error (checks/evidence.py's rule).
 """
 
 import numpy as np
@@ -28,7 +28,11 @@ import mcillum  # noqa: F401
 import drjit as dr
 import mitsuba as mi
 
-from mcillum.validation import renders, scenes, statistics
+from mcillum.validation.plan import scenes
+
+from mcillum.validation.run import renders
+
+from mcillum.validation.stats import statistics
 
 import twins
 from conftest import VARIANTS, batch, small
@@ -174,7 +178,7 @@ def test_one_point_of_the_shifted_set_is_cosine_distributed(llvm, j, n):
     """Over shifts ξ ~ U[0,1)², point j of the mapped set has density cos θ/π
     (what makes the estimator unbiased); χ² at α = 0.01 (mi.chi2)."""
     from mcillum.integrators import fibonacci_hemisphere as fh
-    assert _chi2(lambda u: fh.square_to_cosine_polar(fh.fibonacci_point(j, n, u)))
+    assert _chi2(lambda u: fh.sample_cosine_polar(fh.fibonacci_point(j, n, u)))
 
 
 def test_the_unshifted_set_is_not_cosine_distributed(llvm):
@@ -185,7 +189,7 @@ def test_the_unshifted_set_is_not_cosine_distributed(llvm):
 
     def turned(u):
         j = dr.floor(u.x * n)
-        return fh.square_to_cosine_polar(fh.fibonacci_point(j, n, mi.Point2f(0.0, u.y)))
+        return fh.sample_cosine_polar(fh.fibonacci_point(j, n, mi.Point2f(0.0, u.y)))
 
     assert not _chi2(turned)
 
@@ -194,8 +198,8 @@ def test_inverse_maps_back(llvm):
     from mcillum.integrators import fibonacci_hemisphere as fh
     rng = np.random.default_rng(3)
     u = mi.Point2f(rng.random(1000), rng.random(1000))
-    for fwd, inv in ((fh.square_to_cosine_polar, fh.cosine_polar_to_square),
-                     (fh.square_to_uniform_polar, fh.uniform_polar_to_square)):
+    for fwd, inv in ((fh.sample_cosine_polar, fh.invert_cosine_polar),
+                     (fh.sample_uniform_polar, fh.invert_uniform_polar)):
         back = inv(fwd(u))
         np.testing.assert_allclose(np.array(back), np.array(u), atol=2e-4)
 
@@ -247,10 +251,10 @@ def test_fibonacci_glossy_split_matters(llvm):
 
 # ------------------- bayesian_hemisphere: bias and error bars -------------------
 
-def _unit(images, std=None):
-    from mcillum.validation import sweeps
-    return sweeps.Unit("bayesian_hemisphere", 4, np.asarray(images, np.float32),
-                       [0.0] * len(images), {} if std is None else {"posterior_std": std})
+def _stack(images, std=None):
+    from mcillum.validation.run import stacks
+    return stacks.Stack("bayesian_hemisphere", 4, np.asarray(images, np.float32),
+                        [0.0] * len(images), {} if std is None else {"posterior_std": std})
 
 
 class _Reference:
@@ -263,27 +267,27 @@ class _Reference:
 def test_calibration_verdict_follows_the_error(scale, verdict):
     """Renders scattered by a known std around the reference: a predicted std
     equal to it is calibrated; one 10× too small is over-confident, 10× too
-    large under-confident (the rule of quadrature.CALIBRATED)."""
-    from mcillum.validation import quadrature
+    large under-confident (the rule of checks.evidence.CALIBRATED)."""
+    from mcillum.validation.stages import quadrature
     rng = np.random.default_rng(5)
     ref = np.full((8, 8, 3), 2.0)
     sigma = rng.uniform(0.05, 0.5, size=(8, 8, 3))
     images = ref + sigma * rng.standard_normal((32, 8, 8, 3))
     std = np.broadcast_to(scale * sigma, (32, 8, 8, 3))
-    c = quadrature._calibration(_unit(images, std), _Reference(ref, np.zeros_like(ref)))
+    c = quadrature._calibration(_stack(images, std), _Reference(ref, np.zeros_like(ref)))
     assert c.verdict == verdict, c
 
 
 def test_bias_estimate_is_corrected_for_noise():
     """Pure noise around the reference reads as (nearly) no bias; a 5 % offset
     under the same noise reads as 5 % ± its se."""
-    from mcillum.validation import quadrature
+    from mcillum.validation.stages import quadrature
     rng = np.random.default_rng(6)
     ref = np.full((16, 16, 3), 1.0)
     noise = 0.2 * rng.standard_normal((16, 16, 16, 3))
-    zero = quadrature._bias(_unit(ref + noise), _Reference(ref, np.zeros_like(ref)), 16)
+    zero = quadrature._bias(_stack(ref + noise), _Reference(ref, np.zeros_like(ref)), 16)
     assert zero.rms_bias < 3 * zero.rms_bias_se + 0.01
-    off = quadrature._bias(_unit(1.05 * ref + noise), _Reference(ref, np.zeros_like(ref)), 16)
+    off = quadrature._bias(_stack(1.05 * ref + noise), _Reference(ref, np.zeros_like(ref)), 16)
     assert abs(off.rms_bias - 0.05) < 3 * off.rms_bias_se + 0.005, off
     assert off.mean_bias == pytest.approx(0.05, abs=0.01)
 
@@ -293,7 +297,7 @@ def test_bayesian_bias_shrinks_with_n(llvm):
     bias at N = 256 is below that at N = 16 by more than 3 se (measured:
     7.4 % ± 0.05 % → 0.2 % ± 0.03 %); the check is the validation's
     bias_shrinks."""
-    from mcillum.validation import quadrature
+    from mcillum.validation.stages import quadrature
     scene = renders.load_scene(scenes.path("lone_sphere"), res=8, envmap="sg")
     path = batch(scene, renders.make_integrator("path", {"max_depth": 2}), 4096, 8,
                  first_seed=REFERENCE_SEED)
@@ -302,7 +306,7 @@ def test_bayesian_bias_shrinks_with_n(llvm):
     for n in (16, 256):
         integ = renders.make_integrator("bayesian_hemisphere", {"directions": n,
                                                                 "length_scale": 0.5})
-        rows[n] = quadrature._bias(_unit(batch(scene, integ, 16, 8)), ref, n)
+        rows[n] = quadrature._bias(_stack(batch(scene, integ, 16, 8)), ref, n)
     lo, hi = rows[16], rows[256]
     assert lo.rms_bias - hi.rms_bias > 3 * np.hypot(lo.rms_bias_se, hi.rms_bias_se), rows
 

@@ -33,7 +33,9 @@ import pytest
 import mitsuba as mi
 
 from mcillum.integrators import registry
-from mcillum.validation import renders, scenes, statistics
+from mcillum.validation.plan import scenes
+from mcillum.validation.run import renders
+from mcillum.validation.stats import statistics
 from mcillum.errors import SceneError
 
 import twins

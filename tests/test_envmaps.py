@@ -11,7 +11,10 @@ import pytest
 
 from mcillum import envmaps, files
 from mcillum.envmaps import catalog, probes, procedural, safety
-from mcillum.validation import cli, renders, scenes, statistics
+from mcillum.validation import cli
+from mcillum.validation.plan import scenes
+from mcillum.validation.run import renders
+from mcillum.validation.stats import statistics
 
 import twins
 from conftest import ALL_ESTIMATORS, batch

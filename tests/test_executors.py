@@ -1,4 +1,4 @@
-"""Where renders run (validation/jobs.py, executors.py), without Ray: a job
+"""Where renders run (validation/run/jobs.py, executors.py), without Ray: a job
 that travels rebuilds the same image, a node without the scene's files renders
 it from a copy, the reference does not depend on how many passes an executor
 renders at once, timed renders are the ones whose times are reported, and
@@ -13,20 +13,23 @@ import sys
 import numpy as np
 import pytest
 
-from mcillum.validation import (cli, executors, jobs, pipeline, profiles, references,
-                                renders, stages)
-from mcillum.validation.context import Context, Run
+from mcillum.validation import cli, pipeline
+from mcillum.validation.plan import profiles
+from mcillum.validation.run import executors, jobs, references
+from mcillum.validation.stages import common
+from mcillum.validation.stages.context import Context, Run
 
 
 def _context(tmp_path, scene="lone_sphere", defines=None, res=8) -> Context:
     """A loaded scene as a validation context (lone_sphere under the
     generated sg map: an absolute path into the cache)."""
     defines = {"envmap": "sg"} if defines is None else defines
-    profile = profiles.Profile("test", ())
-    plan = profiles.SceneRun(scene, res, (4,), 2, max_depth=2, defines=defines)
+    profile = profiles.Profile(name="test", runs=())
+    plan = profiles.SceneRun(scene=scene, res=res, ladder=(4,), renders=2, max_depth=2,
+                             defines=defines)
     ctx = Context(Run(profile, "llvm_ad_rgb", str(tmp_path / "cache"), str(tmp_path / "out")),
                   plan, scene, ["cosine_hemisphere"], dict(plan.defines))
-    stages.load(ctx)
+    common.load(ctx)
     return ctx
 
 
@@ -93,11 +96,11 @@ class _Wide(executors.Local):
 
 
 def _reference(tmp_path, executor, targets):
-    profile = profiles.Profile("test", (), reference_spp_per_pass=16)
-    plan = profiles.SceneRun("furnace_sphere", 4, (1,), 2, max_depth=2)
+    profile = profiles.Profile(name="test", runs=(), reference_spp_per_pass=16)
+    plan = profiles.SceneRun(scene="furnace_sphere", res=4, ladder=(1,), renders=2, max_depth=2)
     ctx = Context(Run(profile, "llvm_ad_rgb", str(tmp_path), str(tmp_path / "out"),
                       executor=executor), plan, "furnace_sphere", ["path"])
-    stages.load(ctx)
+    common.load(ctx)
     out = []
     for target in targets:
         out.append(references.ensure(ctx, target(out)))
@@ -139,14 +142,15 @@ def test_the_renders_whose_times_are_reported_are_timed(llvm, tmp_path):
     (but the compile renders, whose seconds are reported, are), and the
     result names the node that timed them."""
     recorder = _Recording()
-    profile = profiles.Profile("test", (), reference_max_seconds=10.0)
-    plan = profiles.SceneRun("furnace_sphere", 4, (4, 16), 2, max_depth=2,
-                             display=profiles.Display(32, (4, 16), renders=2, repeats=2))
+    profile = profiles.Profile(name="test", runs=(), reference_max_seconds=10.0)
+    plan = profiles.SceneRun(scene="furnace_sphere", res=4, ladder=(4, 16), renders=2,
+                             max_depth=2, display=profiles.Display(res=32, path_spp=(4, 16),
+                                                                   renders=2, repeats=2))
     run = Run(profile, "llvm_ad_rgb", str(tmp_path / "cache"), str(tmp_path / "out"),
               executor=recorder)
     result, _ = pipeline.compare_scene(run, plan, ["cosine_hemisphere", "path"])
     small = Context(run, plan, plan.id, [])
-    stages.load(small)
+    common.load(small)
     display = {k for _, keys, _ in recorder.calls for k in keys} - {small.scene_key}
     assert len(display) == 1                                  # the 32² scene
     flags = {key: [timed for timed, keys, _ in recorder.calls if keys == {key}]
@@ -162,7 +166,7 @@ def test_the_renders_whose_times_are_reported_are_timed(llvm, tmp_path):
 
 def test_executor_ray_without_ray_says_how_to_install_it(llvm, tmp_path, monkeypatch, capsys):
     monkeypatch.setitem(sys.modules, "ray", None)              # import ray fails
-    monkeypatch.delitem(sys.modules, "mcillum.validation.ray_executor", raising=False)
+    monkeypatch.delitem(sys.modules, "mcillum.validation.run.ray_executor", raising=False)
     code = cli.main(["validate", "--executor", "ray", "--scenes", "cap_plane", "--no-speed",
                      "--out", str(tmp_path / "out"), "--cache", str(tmp_path / "cache")])
     err = capsys.readouterr().err.strip().splitlines()
@@ -184,7 +188,7 @@ def test_ray_options_are_checked(argv, says, capsys, tmp_path):
 
 def test_unknown_executor_kind():
     with pytest.raises(ValueError, match="unknown executor 'dask'"):
-        executors.start("dask")
+        pipeline.start_executor("dask")
 
 
 def test_ray_is_an_optional_extra():
@@ -207,7 +211,7 @@ def test_scene_files_go_once_and_the_last_few_stay(monkeypatch):
     keeps; afterwards the last FILES_KEPT scenes stay (without Ray: `ray.put`
     replaced by a counter)."""
     pytest.importorskip("ray", reason="Ray is not installed: pip install -e '.[ray]'")
-    from mcillum.validation import ray_executor
+    from mcillum.validation.run import ray_executor
     put = []
     monkeypatch.setattr(ray_executor.ray, "put", lambda files: put.append(files) or files)
     monkeypatch.setattr(jobs, "scene_files", lambda spec: f"files of {spec.key}")

@@ -14,7 +14,8 @@ from scipy import stats
 import mitsuba as mi
 
 from mcillum.integrators import passes
-from mcillum.validation import renders, statistics
+from mcillum.validation.run import renders
+from mcillum.validation.stats import statistics
 from mcillum.errors import root_cause
 
 from conftest import SCENES

@@ -13,7 +13,9 @@ import pytest
 import drjit as dr
 import mitsuba as mi
 
-from mcillum.validation import renders, statistics
+from mcillum.validation.run import renders
+
+from mcillum.validation.stats import statistics
 
 import twins
 from conftest import ALL_ESTIMATORS, ROOT, batch
@@ -115,6 +117,16 @@ def albedo_exact(kd, ks, n, theta_deg):
     cell = (np.pi / 2 / steps) * (np.pi / steps)
     lobe = ((n + 2) / (2 * np.pi) * cos_a ** n * np.cos(to) * np.sin(to)).sum() * cell
     return kd + ks * lobe
+
+
+@pytest.mark.parametrize("n", [1, 10, 100])
+def test_lobe_inverse_maps_back(llvm, n):
+    """invert_phong_lobe undoes sample_phong_lobe (the trio's third member)."""
+    from mcillum.integrators.phong import invert_phong_lobe, sample_phong_lobe
+    rng = np.random.default_rng(5)
+    u = mi.Point2f(rng.uniform(0.01, 0.99, 1000), rng.uniform(0.01, 0.99, 1000))
+    back = invert_phong_lobe(sample_phong_lobe(u, n), n)
+    np.testing.assert_allclose(np.array(back), np.array(u), atol=2e-4)
 
 
 @pytest.mark.parametrize("theta", [0, 30, 60, 85])

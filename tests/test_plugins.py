@@ -12,7 +12,8 @@ import pytest
 import mitsuba as mi
 
 from mcillum import integrators
-from mcillum.validation import renders, statistics
+from mcillum.validation.run import renders
+from mcillum.validation.stats import statistics
 
 import twins
 from conftest import ALL_ESTIMATORS, ROOT, SCENES, render, tiny_scene
@@ -192,7 +193,7 @@ def test_ctrl_c_during_a_render_raises_keyboard_interrupt():
     result = run_python("""
         import os, signal, threading, time
         import mcillum, mitsuba as mi
-        from mcillum.validation import renders
+        from mcillum.validation.run import renders
         mi.set_variant("llvm_ad_rgb")
         scene = renders.load_scene("scenes/cornell_box.xml", res=64)
         integrator = mi.load_dict({"type": "cosine_hemisphere", "max_depth": 8})

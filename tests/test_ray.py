@@ -40,10 +40,11 @@ WORKER = "ray::RenderWorker"
 
 
 #: The quick profile without its reference time cap: a reference stopped by
-#: the clock depends on the machine's speed (README), and CI is slow.
+#: the clock depends on the machine's speed (docs/machines.md), and CI is slow.
 UNCAPPED = """
 import dataclasses, sys
-from mcillum.validation import cli, profiles
+from mcillum.validation import cli
+from mcillum.validation.plan import profiles
 profiles.PROFILES["quick"] = dataclasses.replace(profiles.QUICK, reference_max_seconds=3600.0)
 sys.exit(cli.main(sys.argv[1:]))
 """
@@ -154,11 +155,13 @@ def test_ray_run_gives_the_local_images_even_when_a_worker_dies(tmp_path):
 
 BROKEN = """
 import dataclasses, sys
-from mcillum.validation import cli, profiles
+from mcillum.validation import cli
+from mcillum.validation.plan import profiles
 # a scene run whose $-parameter the scene does not declare: loading it fails
 profiles.PROFILES["quick"] = dataclasses.replace(
     profiles.QUICK, failures=(),
-    runs=(profiles.SceneRun("cap_plane", 4, (4,), 2, max_depth=2, defines={"no_such": 1}),))
+    runs=(profiles.SceneRun(scene="cap_plane", res=4, ladder=(4,), renders=2, max_depth=2,
+                            defines={"no_such": 1}),))
 sys.exit(cli.main(sys.argv[1:]))
 """
 
@@ -166,7 +169,9 @@ FAILING_JOB = """
 import json, sys
 import mcillum
 from mcillum import errors
-from mcillum.validation import executors, jobs, renders, scenes
+from mcillum.validation.plan import scenes
+from mcillum.validation import pipeline
+from mcillum.validation.run import executors, jobs, renders
 variant = renders.set_variant()
 broken = jobs.Job(jobs.SceneSpec(sys.argv[1], (), "broken"), jobs.Integrator("path", ()), 1, 0)
 # a plugin's own error, which mi.render wraps: a hemisphere estimator and a point light
@@ -183,7 +188,7 @@ def attempt(executor, job):
     return None
 
 here = [attempt(executors.Local(), job) for job in (broken, refused)]
-with executors.start("ray", None, 2, variant) as executor:
+with pipeline.start_executor("ray", None, 2, variant) as executor:
     there = [attempt(executor, job) for job in (broken, refused)]
 print(json.dumps([here, there]))
 """

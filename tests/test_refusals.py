@@ -12,7 +12,8 @@ import pytest
 import mitsuba as mi
 
 from mcillum.integrators import UnreachableContentError, registry
-from mcillum.validation import renders, scenes
+from mcillum.validation.plan import scenes
+from mcillum.validation.run import renders
 from mcillum.errors import root_cause
 
 from conftest import ALL_ESTIMATORS, disk, render, tiny_scene

@@ -13,7 +13,10 @@ import mitsuba as mi
 
 from mcillum.integrators import registry
 from mcillum.integrators.scene_checks import KINDS
-from mcillum.validation import charts, pipeline, profiles, results, scenes, stages
+from mcillum.validation import pipeline, results
+from mcillum.validation.plan import profiles, scenes
+from mcillum.validation.report import charts
+from mcillum.validation.stages import cases
 
 import conftest
 import twins
@@ -103,15 +106,20 @@ def test_a_new_estimator_appears_everywhere_without_other_edits(throwaway):
     assert registry.facts(throwaway).renders(contains)
     assert not registry.facts("cosine_hemisphere").renders(contains)
     # failures group: its bound on direct sun hits, N·Ω·max p
-    assert stages.expected_sun_hits(throwaway, 1000, 0.01) == pytest.approx(1000 * 0.01 * 0.25)
+    assert cases.expected_sun_hits(throwaway, 1000, 0.01) == pytest.approx(1000 * 0.01 * 0.25)
     # results and report: the run records its facts, the charts take its colour
     facts = pipeline.estimator_facts([throwaway, "path"])
     assert facts[throwaway].colour == "#123456"
     assert facts[throwaway].unreachable == ["delta_bsdf", "transmission", "medium"]
-    row = results.SweepRow(throwaway, [1.0], [1.0], None, 0, {}, "fine")
-    run = results.Results("t", "quick", "llvm_ad_rgb", "3.9", "1.5", {}, 0.01, 0.1, 1.0, [],
-                          [], [results.CaseResult("failures.glossy.x", "glossy", "x", "x", {},
-                                                  8, 16, 4, -1, "", [row])], facts)
+    row = results.SweepRow(name=throwaway, relmse=[1.0], seconds=[1.0], growth=None,
+                           nonfinite_values=0, images={}, verdict="fine")
+    case = results.CaseResult(id="failures.glossy.x", group="glossy", label="x", scene="x",
+                              defines={}, res=8, spp=16, seeds=4, max_depth=-1, summary="",
+                              estimators=[row])
+    run = results.Results(created="t", profile="quick", variant="llvm_ad_rgb",
+                          mitsuba_version="3.9", drjit_version="1.5", machine={}, alpha=0.01,
+                          reference_fraction=0.1, wall_seconds=1.0, scenes=[], checks=[],
+                          failures=[case], estimator_facts=facts)
     assert charts.palette(run) == {throwaway: "#123456"}
     # Mitsuba loads it by name, from Python and from XML
     scene = mi.load_string(f"""<scene version="3.0.0">

@@ -15,11 +15,14 @@ import numpy as np
 import pytest
 
 from mcillum import files
-from mcillum.validation import charts, report, results
-from mcillum.validation import costs
+from mcillum.validation import report, results
+from mcillum.validation.report import charts
+from mcillum.validation.report import scenes as scene_section
+from mcillum.validation.report.parts import worst_window
 from mcillum.validation.results import (Budget, BudgetRun, Check, Convergence, EstimatorInfo,
-                                        EstimatorResult, Interval, Ratio, ReferenceSummary,
+                                        EstimatorResult, Ratio, ReferenceSummary,
                                         Results, RunStats, SceneResult, Speed, Unbiasedness)
+from mcillum.validation.stats import costs
 
 ESTIMATORS = ["uniform_hemisphere", "cosine_hemisphere", "path"]
 COLOURS = {"uniform_hemisphere": "#d62728", "cosine_hemisphere": "#1f77b4", "path": "#444444"}
@@ -37,21 +40,31 @@ def synthetic_speed(rng, res=32) -> Speed:
         for i, n in enumerate(ESTIMATORS):
             spp = costs.spp_for(models[n], seconds)
             per = list((3 - i) * 0.1 / spp * rng.uniform(0.9, 1.1, 4))
-            mean, ci = costs.mean_interval(per)
-            runs[n] = BudgetRun(spp, list(seconds * rng.uniform(0.98, 1.02, 4)), mean, ci, per,
-                                True)
-        budgets.append(Budget(seconds, path_spp, runs, 1e-5))
+            mean, ci = costs.relmse_interval(per)
+            runs[n] = BudgetRun(spp=spp, wall_seconds=list(seconds * rng.uniform(0.98, 1.02, 4)),
+                                relmse=mean, relmse_ci=ci, relmse_per_render=per,
+                                on_budget=True)
+        budgets.append(Budget(seconds=seconds, path_spp=path_spp, estimators=runs,
+                              reference_relmse=1e-5))
     top = budgets[-1].estimators
-    ratios = {n: Ratio(*costs.ratio_interval(r.relmse_per_render, r.wall_seconds,
-                                             top["path"].relmse_per_render,
-                                             top["path"].wall_seconds))
-              for n, r in top.items()}
+    ratios = {}
+    for n, r in top.items():
+        ratio, ci = costs.ratio_interval(r.relmse_per_render, r.wall_seconds,
+                                         top["path"].relmse_per_render, top["path"].wall_seconds)
+        ratios[n] = Ratio(ratio=ratio, ci=ci)
     ranking = costs.ranking({n: costs.efficiency_interval(r.relmse_per_render, r.wall_seconds)
                              for n, r in top.items()})
-    return Speed(res, 4, models, budgets, ratios, ranking,
-                 ReferenceSummary("path", 4096, 64, 64, 1.0, 0, 64, 1e-6, 1e-6, None, "k"),
-                 {n: 0.1 * (3 - i) for i, n in enumerate(ESTIMATORS)},
-                 ["uniform_hemisphere: a note"])
+    return Speed(res=res, renders=4, cost_model=models, budgets=budgets,
+                 efficiency_vs_path=ratios, ranking=ranking, reference=reference_summary(),
+                 mean_flip={n: 0.1 * (3 - i) for i, n in enumerate(ESTIMATORS)},
+                 notes=["uniform_hemisphere: a note"])
+
+
+def reference_summary() -> ReferenceSummary:
+    return ReferenceSummary(integrator="path", spp=4096, passes=64, spp_per_pass=64,
+                            seconds=1.0, cached_passes=0, rendered_passes=64,
+                            target_variance=1e-6, achieved_variance=1e-6, capped=None,
+                            key="k")
 
 
 def synthetic_results(scenes=("alpha", "beta"), ladder=(4, 16, 64)) -> Results:
@@ -62,29 +75,41 @@ def synthetic_results(scenes=("alpha", "beta"), ladder=(4, 16, 64)) -> Results:
     for s in scenes:
         ests = []
         for i, name in enumerate(ESTIMATORS):
-            runs = [RunStats(spp, 8, 0.5 / (i + 1) / spp,
-                             list(0.5 / (i + 1) / spp * rng.lognormal(0, 1, 8)), 0.1, 0.1,
-                             1e-3, 2e-3, 0.01, 0.0, 1e-4 * spp, [1e-4 * spp] * 8, 1e6,
-                             (i + 1) * spp / (0.5 * 1e-4 * spp), 0.0) for spp in ladder]
+            runs = [RunStats(spp=spp, renders=8, relmse=0.5 / (i + 1) / spp,
+                             relmse_per_render=list(0.5 / (i + 1) / spp
+                                                    * rng.lognormal(0, 1, 8)),
+                             mse=0.1, mape=0.1, bias=1e-3, bias_se=2e-3,
+                             variance_per_render=0.01, nonfinite_fraction=0.0,
+                             median_seconds=1e-4 * spp, seconds=[1e-4 * spp] * 8,
+                             samples_per_second=1e6,
+                             efficiency=(i + 1) * spp / (0.5 * 1e-4 * spp),
+                             reference_relmse=0.0) for spp in ladder]
             passed = name != "uniform_hemisphere"
             # one inconclusive check: cosine in the second scene
             outcome = ("fail" if not passed else
                        "inconclusive" if (s, name) == (scenes[-1], "cosine_hemisphere")
                        else "pass")
             ests.append(EstimatorResult(
-                name, {"max_depth": 2}, 0.1, runs,
-                Unbiasedness(ladder[-1], passed, 0.99, 0.01, 0.01, 1e-5, [0.5], "m",
-                             outcome=outcome, reason=f"why {outcome}"),
-                Convergence(-1.0, -1.1, -0.9, False, True, True)))
-            checks.append(Check(f"{s}/{name}/unbiased", passed, f"m {outcome}", outcome))
+                name=name, params={"max_depth": 2}, compile_seconds=0.1, runs=runs,
+                unbiasedness=Unbiasedness(spp=ladder[-1], passed=passed, pass_fraction=0.99,
+                                          min_p=0.01, alpha=0.01, alpha_pixel=1e-5,
+                                          pooled_p=[0.5], summary="m", outcome=outcome,
+                                          reason=f"why {outcome}"),
+                convergence=Convergence(slope=-1.0, low=-1.1, high=-0.9, exact=False,
+                                        consistent_with_mc=True, passed=True)))
+            checks.append(Check(id=f"{s}/{name}/unbiased", passed=passed,
+                                message=f"m {outcome}", outcome=outcome))
         scene_results.append(SceneResult(
-            s, f"scenes/{s}.xml", f"{s}: a synthetic scene", 8, 2, list(ladder), 8,
-            ReferenceSummary("path", 4096, 64, 64, 1.0, 0, 64, 1e-6, 1e-6, None, "k"), ests,
-            synthetic_speed(rng)))
-    facts = {n: EstimatorInfo(n.replace("_", " "), COLOURS[n], [], None) for n in ESTIMATORS}
-    return Results("2026-11-22T12:00:00", "quick", "llvm_ad_rgb", "3.9.1", "1.5.0",
-                   {"platform": "Linux", "cpus": 2, "python": "3.11"}, 0.01, 0.1, 12.0,
-                   scene_results, checks, [], facts)
+            name=s, path=f"scenes/{s}.xml", summary=f"{s}: a synthetic scene", res=8,
+            max_depth=2, ladder=list(ladder), renders=8, reference=reference_summary(),
+            estimators=ests, speed=synthetic_speed(rng)))
+    facts = {n: EstimatorInfo(display_name=n.replace("_", " "), colour=COLOURS[n],
+                              unreachable=[], max_direction_pdf=None) for n in ESTIMATORS}
+    return Results(created="2026-11-22T12:00:00", profile="quick", variant="llvm_ad_rgb",
+                   mitsuba_version="3.9.1", drjit_version="1.5.0",
+                   machine={"platform": "Linux", "cpus": 2, "python": "3.11"}, alpha=0.01,
+                   reference_fraction=0.1, wall_seconds=12.0, scenes=scene_results,
+                   checks=checks, failures=[], estimator_facts=facts)
 
 
 def test_colours_come_from_the_runs_facts():
@@ -150,7 +175,7 @@ def test_inconclusive_checks_are_skipped_in_junit_and_fail_only_when_strict(tmp_
     old = {"id": "a/b/unbiased", "passed": False, "message": "m"}
     assert results.from_json(Check, old).outcome == "fail"
     with pytest.raises(ValueError, match="outcome"):
-        Check("a/b/c", True, "m", "maybe")
+        Check(id="a/b/c", passed=True, message="m", outcome="maybe")
 
 
 def test_non_finite_numbers_are_written_as_null_and_read_back_as_nan(tmp_path):
@@ -158,7 +183,8 @@ def test_non_finite_numbers_are_written_as_null_and_read_back_as_nan(tmp_path):
     render's mean NaN: results.json (plain JSON) holds them as null."""
     res = synthetic_results()
     est = res.scenes[0].estimators[0]
-    est.convergence = Convergence(math.nan, -math.inf, math.inf, True, True, True)
+    est.convergence = Convergence(slope=math.nan, low=-math.inf, high=math.inf, exact=True,
+                                  consistent_with_mc=True, passed=True)
     est.runs[0].efficiency = math.inf
     results.write_json(str(tmp_path / "results.json"), res)
     constants = []                          # NaN, Infinity: not JSON
@@ -241,7 +267,18 @@ def test_report_is_self_contained(tmp_path):
     assert "cosine_hemisphere/unbiased</code>: m inconclusive" in unsure
     assert 'class=warn title="why inconclusive">inconclusive' in text
     assert "alpha/uniform_hemisphere/unbiased" in text       # failures are listed
-    assert (tmp_path / "report" / "summary.md").is_file()
+    assert not (tmp_path / "report" / "summary.md").exists()  # one summary.md: the run's
+
+
+def test_report_command_rewrites_the_page_and_the_summary(tmp_path, capsys):
+    """`mcillum report DIR` writes DIR/report/index.html and DIR/summary.md
+    (the one summary, results/tables.py) from DIR/results.json."""
+    from mcillum.validation import cli
+    run_dir = fake_run_dir(tmp_path)
+    assert cli.main(["report", str(run_dir)]) == 0
+    assert (run_dir / "report" / "index.html").is_file()
+    assert "# mcillum validation" in (run_dir / "summary.md").read_text()
+    assert str(run_dir / "report" / "index.html") in capsys.readouterr().out
 
 
 def test_report_needs_a_results_file(tmp_path):
@@ -252,7 +289,7 @@ def test_report_needs_a_results_file(tmp_path):
 def test_worst_window_finds_the_hot_spot():
     err = np.zeros((16, 16))
     err[10:13, 2:5] = 1.0
-    y, x, size = report.worst_window([err, err * 0.5])
+    y, x, size = worst_window([err, err * 0.5])
     assert size == 4 and y <= 10 < y + size and x <= 2 < x + size
 
 
@@ -345,4 +382,4 @@ def test_strict_exit_code_counts_inconclusive_checks(tmp_path, monkeypatch, caps
                                       (1.0, "x·2<sup>+1.0</sup>"), (-2.34, "x·2<sup>-2.3</sup>")])
 def test_tone_mapping_scale_reads_plainly(ev, text):
     """An exposure that rounds to 0 reads as `x`, not `x·2^-0.0`."""
-    assert report._scaling(ev) == text
+    assert scene_section._scaling(ev) == text

@@ -18,7 +18,8 @@ import mitsuba as mi
 
 from mcillum.integrators.bsdf_sampling import bsdf_direction_pdf, sample_bsdf_direction
 from mcillum.integrators.emitter_sampling import emitter_direction_pdf, sample_emitter_direction
-from mcillum.validation import renders, scenes
+from mcillum.validation.plan import scenes
+from mcillum.validation.run import renders
 
 from conftest import HEMISPHERE
 from twins import plugin_class

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from mcillum.integrators import registry
-from mcillum.validation import renders, scenes
+from mcillum.validation.plan import scenes
+from mcillum.validation.run import renders
 
 from conftest import ALL_ESTIMATORS
 

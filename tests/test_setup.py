@@ -188,7 +188,7 @@ def test_install_adds_one_package_and_its_scenes(tmp_path):
     result = subprocess.run([python, "-c", textwrap.dedent("""
         import mcillum, mitsuba as mi
         from mcillum.integrators import registry
-        from mcillum.validation import scenes
+        from mcillum.validation.plan import scenes
         mi.set_variant("scalar_rgb")
         print(mcillum.__file__)
         print(scenes.index()["cornell_box"].path)

@@ -17,16 +17,21 @@ import mitsuba as mi
 
 from mcillum import files
 from mcillum.envmaps import procedural
-from mcillum.validation import cli, profiles, references, renders, results, scenes, stages
-from mcillum.validation.context import Context, Run
+from mcillum.validation import cli, results
+from mcillum.validation.plan import profiles, scenes
+from mcillum.validation.run import references, renders
+from mcillum.validation.stages import common
+from mcillum.validation.stages.context import Context, Run
 
 import twins
+from conftest import disagreements
 
 # A small profile for tests: the two analytic scenes, few rungs.
-TINY = profiles.Profile("quick", (
-    profiles.SceneRun("furnace_sphere", 8, (4, 16, 64, 256), 8, max_depth=2),
-    profiles.SceneRun("cap_plane", 4, (16, 64, 256, 1024), 8, max_depth=2,
-                      display=profiles.Display(32)),
+TINY = profiles.Profile(name="quick", runs=(
+    profiles.SceneRun(scene="furnace_sphere", res=8, ladder=(4, 16, 64, 256), renders=8,
+                      max_depth=2),
+    profiles.SceneRun(scene="cap_plane", res=4, ladder=(16, 64, 256, 1024), renders=8,
+                      max_depth=2, display=profiles.Display(res=32)),
 ), reference_max_seconds=20.0)
 
 
@@ -147,13 +152,15 @@ def test_convergence_check_fails_an_error_that_stops_shrinking(llvm, tiny_profil
 def test_too_few_rungs_claim_nothing(llvm):
     """Fewer than 3 rungs with error above the reference's: no slope, no
     claim of Monte Carlo convergence, inconclusive."""
-    from mcillum.validation import analysis
+    from mcillum.validation.checks import scene as scene_checks
+    from mcillum.validation.stages import scene
     runs = [results.RunStats(spp=s, renders=8, relmse=r, relmse_per_render=[r] * 8, mse=r,
                              mape=0.1, bias=0.0, bias_se=0.01, variance_per_render=r,
                              nonfinite_fraction=0.0, median_seconds=0.01, seconds=[0.01] * 8,
                              samples_per_second=1e6, efficiency=1.0, reference_relmse=0.0)
             for s, r in ((16, 0.1), (64, 0.025))]
-    c = analysis.convergence(runs)
+    c = scene.convergence_fit(runs)
+    scene_checks.decide_convergence(c, heavy=False)
     assert not c.consistent_with_mc and not c.passed and c.outcome == "inconclusive", c
 
 
@@ -172,9 +179,9 @@ def test_biased_estimator_fails_with_exit_1(llvm, tiny_profile, tmp_path, capsys
 
 def test_groups_run_one_group_only(llvm, tmp_path, monkeypatch):
     """--groups picks the scene comparisons or the failures group."""
-    case = profiles.FailureCase("geometry", "edge_thin", 4, 4, 4)
+    case = profiles.FailureCase(group="geometry", scene="edge_thin", res=4, spp=4, seeds=4)
     monkeypatch.setitem(profiles.PROFILES, "quick", profiles.Profile(
-        "quick", TINY.runs[:1], failures=(case,), reference_max_seconds=10.0,
+        name="quick", runs=TINY.runs[:1], failures=(case,), reference_max_seconds=10.0,
         estimators=("cosine_hemisphere", "path")))
     for group, scenes_, cases in (("failures", 0, 1), ("scenes", 1, 0)):
         code, out = run_cli(tmp_path / group, "--groups", group)
@@ -220,11 +227,12 @@ def test_rerun_resumes_without_rendering(llvm, tiny_profile, tmp_path, monkeypat
 def furnace(tmp_path, res=4, spp_per_pass=16) -> Context:
     """The loaded furnace scene as a validation context (max_depth 2), with
     the reference cache in ``tmp_path``."""
-    profile = profiles.Profile("test", (), reference_spp_per_pass=spp_per_pass)
-    plan = profiles.SceneRun("furnace_sphere", res, (1,), 2, max_depth=2)
+    profile = profiles.Profile(name="test", runs=(), reference_spp_per_pass=spp_per_pass)
+    plan = profiles.SceneRun(scene="furnace_sphere", res=res, ladder=(1,), renders=2,
+                             max_depth=2)
     ctx = Context(Run(profile, "llvm_ad_rgb", str(tmp_path), str(tmp_path / "out")), plan,
                   "furnace_sphere", ["path"])
-    stages.load(ctx)
+    common.load(ctx)
     return ctx
 
 
@@ -345,22 +353,23 @@ def test_speed_stage_reproduces(llvm, tmp_path):
     """The speed-and-images stage twice on the Cornell box at 128² (fresh
     output directories, the reference cached by the first): every estimator's
     efficiency against `path` agrees within ±15 %, and no pair one run tells
-    apart is reversed in the other (costs.disagreements; its own test shows
-    it reports both kinds)."""
-    from mcillum.validation import costs, pipeline
-    profile = profiles.Profile("quick", (), reference_max_seconds=30.0)
-    plan = profiles.SceneRun("cornell_box", 8, (4,), 2, display=profiles.Display(128))
+    apart is reversed in the other (conftest.disagreements; its own test
+    shows it reports both kinds)."""
+    from mcillum.validation import pipeline
+    profile = profiles.Profile(name="quick", runs=(), reference_max_seconds=30.0)
+    plan = profiles.SceneRun(scene="cornell_box", res=8, ladder=(4,), renders=2,
+                             display=profiles.Display(res=128))
     runs = []
     for i in range(2):
         ctx = Context(Run(profile, "llvm_ad_rgb", str(tmp_path / "cache"),
                           str(tmp_path / f"out{i}")), plan, "cornell_box",
                       profile.estimator_names())
-        stages.load(ctx)
-        stages.choose_estimators(ctx)
+        common.load(ctx)
+        common.choose_estimators(ctx)
         runs.append(pipeline.run_stages(pipeline.SPEED, ctx).speed)
     first, second = runs
     assert first.budgets[-1].seconds > 0.1           # not a launch-overhead measurement
     for budget in (*first.budgets, *second.budgets):   # on budget, or the result says why
         assert all(r.on_budget or r.note for r in budget.estimators.values()), budget
-    assert costs.disagreements(first.efficiency_vs_path, second.efficiency_vs_path,
-                               first.ranking, second.ranking) == []
+    assert disagreements(first.efficiency_vs_path, second.efficiency_vs_path,
+                         first.ranking, second.ranking) == []

@@ -1,4 +1,4 @@
-"""The rules of evidence (validation/checks.py) on synthetic renders whose
+"""The rules of evidence (validation/checks/evidence.py) on synthetic renders whose
 truth is known: a correct heavy-tailed estimator is never called biased more
 often than the test's α, and three real biases on the same heavy-tailed
 "scene" — a pdf 5 % off, a firefly clamp, a missing light — are not passed.
@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from mcillum.validation import checks, statistics, tails
+from mcillum.validation.checks import evidence
+from mcillum.validation.stats import statistics, tails
 
 P, K, SPP, SIGMA = 16, 64, 16, 0.5
 P_HIT, TAIL = 1e-4, 0.5              # the rare source carries 0.5 of a pixel's 1.5
@@ -48,14 +49,14 @@ def reference():
 def outcome(x, ref, mean):
     c = statistics.compare(x, ref)
     events, n, carried = tails.tail_events([x], mean)
-    return checks.bias_outcome(c, events, n, SPP * n, carried).outcome
+    return evidence.bias_outcome(c, events, n, SPP * n, carried).outcome
 
 
 def test_a_correct_heavy_tailed_estimator_fails_at_most_alpha():
     """150 seeds of a correct estimator whose tail most renders miss: the
     per-pixel Welch test alone rejects most of them (it did in the full
     profile); under the rules, "fail" at most as often as α allows (one-sided
-    binomial bound at 0.001: 5 of 150 at α = 0.01)."""
+    binomial bound at 0.001: at most 6 of 150 at α = 0.01)."""
     rng = np.random.default_rng(1)
     ref, mean = reference()
     outcomes = [outcome(renders(rng), ref, mean) for _ in range(TRIALS)]
@@ -109,7 +110,8 @@ def test_added_light_fails_even_with_a_tail():
 
 def conv(slope, low, high, exact=False):
     from mcillum.validation.results import Convergence
-    return Convergence(slope, low, high, exact, low <= -1 <= high, high < 0)
+    return Convergence(slope=slope, low=low, high=high, exact=exact,
+                       consistent_with_mc=low <= -1 <= high, passed=high < 0)
 
 
 @pytest.mark.parametrize("interval, heavy, expected", [
@@ -126,19 +128,19 @@ def conv(slope, low, high, exact=False):
     ((-0.3, -0.8, 0.2), False, "fail"),          # the same, narrow (1.0): it means it
 ])
 def test_convergence_outcomes(interval, heavy, expected):
-    assert checks.convergence_outcome(conv(*interval), heavy)[0] == expected
+    assert evidence.convergence_outcome(conv(*interval), heavy)[0] == expected
 
 
 def test_convergence_of_exact_and_unmeasurable_estimators():
     nan, inf = float("nan"), float("inf")
-    assert checks.convergence_outcome(conv(nan, nan, nan, True), False)[0] == "pass"
-    assert checks.convergence_outcome(conv(nan, -inf, inf), False)[0] == "inconclusive"
+    assert evidence.convergence_outcome(conv(nan, nan, nan, True), False)[0] == "pass"
+    assert evidence.convergence_outcome(conv(nan, -inf, inf), False)[0] == "inconclusive"
 
 
 def replicated(x, fresh, ref, mean):
     def decide(c, renders):
         events, n, carried = tails.tail_events([renders], mean)
-        return checks.bias_outcome(c, events, n, SPP * n, carried)
+        return evidence.bias_outcome(c, events, n, SPP * n, carried)
     return statistics.replicated_compare(x, ref, fresh, ALPHA, decide)
 
 

@@ -31,7 +31,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mcillum.validation import renders
+from mcillum.validation.run import renders
 
 
 def plugin_class(name: str):

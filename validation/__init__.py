@@ -1,21 +1,32 @@
 """mcillum validation: compare the estimators with Mitsuba's path tracer.
 
-Read it as the pipeline it runs; each module imports only modules above it:
+A run reads as a pipeline: **plan** (what to run) → **run** (renders and the
+reference) → **stats** (numbers) → **stages** (what each step of a scene
+comparison or a failure case measures) → **checks** (the verdicts) →
+**results** (records and their files) → **report** (what people look at).
+``pipeline`` strings them together; ``cli`` is the ``mcillum`` command.
 
-    profiles, scenes        what to run: scenes, resolutions, spp, K, failure cases
-    seeds                   which seed every render uses (disjoint named streams)
-    metrics, results        the error metrics, and the typed records of a run
-                            (with its files: results.json, csv, summary, JUnit)
-    images, renders,        one render, timed; K renders per estimator and spp
-    sweeps
-    costs, timing           t = a + b·spp with intervals, efficiency, ranking;
-                            timed warm renders (and `mcillum bench`)
-    statistics, references  batch-means tests; Mitsuba's `path` until its noise is small
-    tails, analysis         heavy tails; metrics per spp, convergence
-    checks                  every check and verdict rule
-    context, stages, speed  one scene run or failure case, the stages over it, and
-                            the speed-and-images stage at the display resolution
-    charts, report          what people look at
-    progress, pipeline      the one orchestrator (`mcillum validate`)
-    cli                     the `mcillum` command
+Imports point down the table below: a module imports only modules of its
+own row or of rows beneath it, and never in a cycle. Two rows sit lower
+than the reading order says: the stages ask the checks' rules of evidence
+which rejections to test again, so checks sit below stages; and every layer
+builds or reads records, so results sit near the bottom.
+tests/test_layout.py reads this table and fails on an import that breaks it.
+
+Layers, top to bottom:
+
+    validation.cli        the `mcillum` command: parses arguments, calls the library
+    validation.pipeline   the orchestrator: stage lists, checks, results, report
+    validation.report     the HTML page, its charts and its image parts
+    validation.stages     context; scene comparison, failure cases, speed, quadrature
+    validation.checks     the rules of evidence and every check
+    validation.run        renders, jobs, stacks of K renders, references, executors, timing
+    validation.stats      metrics, statistics, tails, costs: numbers, no Mitsuba
+    validation.results    records; results.json, csv, summary.md, JUnit; the run directory
+    validation.plan       profiles, scenes, seeds
+    validation            this package (this docstring)
+    mcillum               the front door: LLVM set-up and plugin registration
+    integrators           the plugins, one estimator per file, and their facts
+    envmaps               environment maps: probes, procedural maps, the loading policy
+    errors files images   mcillum's own helpers: errors, files, tone mapping
 """

@@ -14,14 +14,15 @@ from __future__ import annotations
 
 import argparse
 import os
-import signal
 import sys
-import threading
 
 from mcillum import errors, files
 from mcillum.envmaps import catalog, safety
 
-from . import executors, jobs, profiles, renders, results, timing
+from . import results
+from .plan import profiles
+from .results import layout
+from .run import executors, jobs, renders, timing
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 1, 2, 130, 143
 
@@ -128,7 +129,7 @@ def _parser() -> argparse.ArgumentParser:
     rp = sub.add_parser(
         "report", help="(re)write the HTML report of an existing validation run",
         description="Read RESULTS_DIR/results.json and its images and write "
-                    "RESULTS_DIR/report/index.html (self-contained) and summary.md.")
+                    "RESULTS_DIR/report/index.html (self-contained) and RESULTS_DIR/summary.md.")
     rp.add_argument("results_dir", help="a directory written by `mcillum validate --out`")
     for p, run in ((r, _render), (b, _bench), (e, _envmap), (v, _validate), (rp, _report)):
         p.set_defaults(run=run, subparser=p)
@@ -195,7 +196,7 @@ def _bench(args) -> int:
     scene = renders.load_scene(args.scene, **defines)
     rows = timing.bench(scene, integrators, args.spp, args.runs)
     for row in rows:
-        print(timing.describe(row, names[0]))
+        print(timing.bench_line(row, names[0]))
     if args.json:
         timing.write_json(args.json, args.scene, scene, defines, params, args.spp, variant,
                           rows)
@@ -219,8 +220,8 @@ def _envmap(args) -> int:
 
 
 def _validate(args) -> int:
-    # (the pipeline pulls in scipy and matplotlib, ~2 s of imports that the
-    # other commands do not need)
+    # (the pipeline pulls in scipy and matplotlib, imports that the other
+    # commands do not need)
     from . import pipeline
 
     profiles.PROFILES[args.profile].check_scenes(args.scenes or [])
@@ -248,7 +249,7 @@ def _validate(args) -> int:
     if args.junit:
         results.write_junit(args.junit, out, strict=args.strict)
     print(results.summary(out))
-    print(f"report: {os.path.join(args.out, 'report', 'index.html')}")
+    print(f"report: {layout.report_html(args.out)}")
     ok = out.passed and not (args.strict and out.inconclusive)
     return EXIT_OK if ok else EXIT_FAILED
 
@@ -259,6 +260,7 @@ def _report(args) -> int:
     res = results.load(args.results_dir)
     files.check_writable_dir(args.results_dir)
     print(report.build(args.results_dir, res))
+    results.write_summary(args.results_dir, res)
     return EXIT_OK
 
 

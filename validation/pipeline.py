@@ -1,19 +1,23 @@
 """`mcillum validate`: the one orchestrator.
 
 For every scene of a profile and every case of its failures group, a
-:class:`~.context.Context` goes through a list of stages (:mod:`.stages`):
+:class:`~.stages.context.Context` goes through a list of stages (the tuples
+below), then the checks decide (:mod:`.checks`):
 
     scene comparison   load → choose estimators → K renders per rung of an spp
-                       ladder → reference → statistics → quadrature (estimators
-                       of N directions: equal rays, bias against N, calibration)
-                       → release the scene → checks → images; then
-                       the speed-and-images stage at the display resolution
-                       (speed.py): cost model → equal-time renders → reference
-                       → relMSE, efficiency, ranking, FLIP → images
+                       ladder → reference → measure → replicate what counts →
+                       quadrature (estimators of N directions: equal rays, bias
+                       against N, calibration) → release the scene → images;
+                       checks; then the speed-and-images stage at the display
+                       resolution (stages/speed.py): cost model → equal-time
+                       renders → reference → relMSE, efficiency, ranking, FLIP
+                       → images
     failure case       load → refusals → K seeds → reference → tail numbers →
-                       bias test (replicated) → sun split → checks → evidence
+                       bias test (replicated) → release → the sunless twin
+                       (a heavy-tail case on a map with a sun: the map without
+                       it, through SUNLESS) → sun split; checks; evidence
     sweep              each parameter value: load → K seeds → reference →
-                       tail numbers; then rows along the sweep → checks
+                       tail numbers; then rows along the sweep; checks
 
 The reference comes after the estimator renders because its precision target
 depends on them. Then results.json, results.csv, summary.md and the report.
@@ -28,26 +32,33 @@ import time
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from mcillum import files
 from mcillum.errors import Interrupted
 from mcillum.integrators import registry
 
-from . import (executors, profiles, quadrature, renders, report, results, seeds, speed,
-               stages, statistics)
-from .context import Context, Run
-from .progress import Progress
+from . import report, results
+from .checks import cases as case_checks
+from .checks import scene as scene_checks
+from .plan import profiles, seeds
+from .results import layout
+from .run import executors, renders
+from .run.progress import Progress
+from .stages import cases, common, quadrature, scene, speed
+from .stages.context import Context, Run
+from .stats import metrics, statistics
 
-SCENE = (stages.load, stages.choose_estimators, stages.render_ladder, stages.build_reference,
-         stages.measure, quadrature.measure, stages.release, stages.judge_scene,
-         stages.save_images)
+SCENE = (common.load, common.choose_estimators, scene.render_ladder, common.build_reference,
+         scene.measure, scene.replicate, quadrature.measure, common.release, scene.save_images)
 SPEED = (speed.display, speed.time_costs, speed.render_budgets, speed.display_reference,
          speed.release_display, speed.measure_speed, speed.save_display)
-CASE = (stages.load, stages.probe_refusals, stages.render_seeds, stages.build_reference,
-        stages.tail_numbers, stages.test_bias, stages.release, stages.split_sun,
-        stages.judge_case, stages.save_evidence)
-SWEEP_POINT = (stages.load, stages.choose_estimators, stages.render_seeds,
-               stages.build_reference, stages.tail_numbers, stages.release)
+CASE = (common.load, cases.probe_refusals, cases.render_seeds, common.build_reference,
+        cases.tail_numbers, cases.test_bias, common.release, cases.sunless_twin)
+#: The sunless twin of a heavy-tail case (its own context: ``ctx.sunless``).
+SUNLESS = (common.load, common.choose_estimators, cases.render_seeds, common.build_reference)
+SWEEP_POINT = (common.load, common.choose_estimators, cases.render_seeds,
+               common.build_reference, cases.tail_numbers, common.release)
 
 
 def run_stages(stage_list, ctx: Context) -> Context:
@@ -62,9 +73,10 @@ def compare_scene(run: Run, plan: profiles.SceneRun, estimators,
     ``speed_stage`` is False, its speed-and-images stage)."""
     ctx = run_stages(SCENE, Context(run, plan, plan.id, at_depth(estimators, plan),
                                     dict(plan.defines), label=plan.id))
+    ctx.checks = scene_checks.judge(ctx.id, ctx.measured, ctx.evidence, ctx.quadrature)
     if speed_stage and plan.display is not None and registry.REFERENCE in ctx.integrators:
         run_stages(SPEED, ctx)
-    return stages.scene_result(ctx), ctx.checks
+    return scene.scene_result(ctx), ctx.checks
 
 
 def failure_case(run: Run, plan: profiles.FailureCase,
@@ -73,15 +85,22 @@ def failure_case(run: Run, plan: profiles.FailureCase,
     result and its checks."""
     ctx = Context(run, plan, plan.id, at_depth(estimators, plan), dict(plan.defines),
                   label=plan.id)
-    if not plan.sweep:
-        run_stages(CASE, ctx)
-        return stages.case_result(ctx), ctx.checks
-    param, values = plan.sweep
-    points = [run_stages(SWEEP_POINT, ctx.derive(label=f"{plan.id} {v}", **{param: v}))
-              for v in values]
-    stages.sweep_rows(ctx, points)
-    stages.judge_sweep(ctx)
-    return stages.case_result(ctx), ctx.checks
+    if plan.sweep:
+        param, values = plan.sweep
+        points = [run_stages(SWEEP_POINT, ctx.derive(label=f"{plan.id} {v}", **{param: v}))
+                  for v in values]
+        cases.sweep_rows(ctx, points)
+        ctx.checks = case_checks.judge_sweep(ctx.id, ctx.sweep_rows, cases.sweep_record(plan))
+        return cases.case_result(ctx), ctx.checks
+    run_stages(CASE, ctx)
+    if ctx.sunless is not None:
+        run_stages(SUNLESS, ctx.sunless)
+        cases.split_sun(ctx)
+        common.release(ctx.sunless)
+    pixels = int(np.prod(ctx.reference.mean.shape[:2]))
+    ctx.checks = case_checks.judge(ctx.id, ctx.rows, ctx.info.contains, pixels)
+    cases.save_evidence(ctx)
+    return cases.case_result(ctx), ctx.checks
 
 
 def at_depth(estimators, plan) -> list[str]:
@@ -99,9 +118,9 @@ def validate(profile_name: str = "quick", scene_names=None, estimators=None,
              ray_address: str | None = None, ray_workers: int | None = None) -> results.Results:
     """Run a profile: its scene comparisons and/or its failures group
     (``groups``), filtered by scene name; write the results and the report.
-    ``seed_set`` picks an independent repeat (seeds.py); ``speed_stage``
+    ``seed_set`` picks an independent repeat (plan/seeds.py); ``speed_stage``
     False leaves out the speed-and-images stage (no verdict depends on it).
-    ``executor`` says where the renders run (executors.py: ``local``, or
+    ``executor`` says where the renders run (run/executors.py: ``local``, or
     ``ray`` at ``ray_address`` with ``ray_workers``); the images do not
     depend on it.
 
@@ -121,7 +140,7 @@ def validate(profile_name: str = "quick", scene_names=None, estimators=None,
     os.makedirs(out_dir, exist_ok=True)
     for d in (out_dir, cache_dir):   # left by a killed run (one writer at a time)
         files.remove_stale_partials(d, recursive=True)
-    json_path = os.path.join(out_dir, "results.json")
+    json_path = layout.results_json(out_dir)
     before = _stamp(json_path)
     total = sum(r.renders * len(at_depth(estimators, r)) * len(r.ladder) +
                 quadrature.planned_renders(at_depth(estimators, r), r.renders)
@@ -134,7 +153,7 @@ def validate(profile_name: str = "quick", scene_names=None, estimators=None,
     start = time.perf_counter()
     try:
         scene_results, case_results, checks = [], [], []
-        with executors.start(executor, ray_address, ray_workers, variant) as ex:
+        with start_executor(executor, ray_address, ray_workers, variant) as ex:
             bar = Progress(total, progress)
             run = Run(profile, variant, cache_dir, out_dir, bar, ex)
             try:
@@ -148,19 +167,22 @@ def validate(profile_name: str = "quick", scene_names=None, estimators=None,
                     checks += found
             finally:
                 bar.close()
-            where = ex.describe()
+            where = ex.record()
         out = results.Results(
-            time.strftime("%Y-%m-%dT%H:%M:%S%z"), profile.name, variant, mi.__version__,
-            dr.__version__, _machine(), statistics.ALPHA, profile.reference_fraction,
-            time.perf_counter() - start, scene_results, checks, case_results,
-            estimator_facts([*estimators, *cases_estimators]), seed_set=seed_set,
-            executor=where)
+            created=time.strftime("%Y-%m-%dT%H:%M:%S%z"), profile=profile.name,
+            variant=variant, mitsuba_version=mi.__version__, drjit_version=dr.__version__,
+            machine=_machine(), alpha=statistics.ALPHA,
+            reference_fraction=profile.reference_fraction,
+            wall_seconds=time.perf_counter() - start, scenes=scene_results, checks=checks,
+            failures=case_results,
+            estimator_facts=estimator_facts([*estimators, *cases_estimators]),
+            seed_set=seed_set, executor=where, definitions=dict(metrics.DEFINITIONS))
         results.write_json(json_path, out)
     except KeyboardInterrupt:
         raise Interrupted(_left_behind(out_dir, json_path, before)) from None
     try:
-        results.write_csv(os.path.join(out_dir, "results.csv"), out)
-        files.write_text(os.path.join(out_dir, "summary.md"), results.summary(out))
+        results.write_csv(layout.results_csv(out_dir), out)
+        results.write_summary(out_dir, out)
         report.build(out_dir, out)
     except KeyboardInterrupt:
         raise Interrupted(f"while writing the report: {json_path} is complete; run "
@@ -172,10 +194,25 @@ def estimator_facts(names) -> dict[str, results.EstimatorInfo]:
     """The registry's facts of ``names``, as the results record them."""
     names = list(dict.fromkeys(names))
     colours = registry.palette(names)
-    return {n: results.EstimatorInfo(registry.facts(n).display_name, colours[n],
-                                     list(registry.facts(n).unreachable),
-                                     registry.facts(n).max_direction_pdf,
-                                     registry.facts(n).unbiased) for n in names}
+    return {n: results.EstimatorInfo(display_name=registry.facts(n).display_name,
+                                     colour=colours[n],
+                                     unreachable=list(registry.facts(n).unreachable),
+                                     max_direction_pdf=registry.facts(n).max_direction_pdf,
+                                     unbiased=registry.facts(n).unbiased) for n in names}
+
+
+def start_executor(kind: str = "local", address: str | None = None,
+                   workers: int | None = None, variant: str | None = None):
+    """The executor of ``kind`` (run/executors.py): ``local``, or ``ray``
+    (joining the cluster at ``address``, else starting one on this machine)
+    with ``workers`` workers (default: one per CPU, or per GPU for a cuda
+    variant) in ``variant``. Raises ValueError for another kind."""
+    if kind == "local":
+        return executors.Local()
+    if kind == "ray":
+        from .run import ray_executor
+        return ray_executor.RayExecutor(address, workers, variant)
+    raise ValueError(f"unknown executor '{kind}': use one of {', '.join(executors.KINDS)}")
 
 
 def _machine() -> dict:

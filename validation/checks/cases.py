@@ -1,0 +1,100 @@
+"""The checks of the failures group: per case × estimator ``refuses`` (an
+estimator refuses exactly the scenes whose content it cannot reach, by its
+registry facts) and ``stable`` (its verdict, :func:`evidence.case_verdict`:
+fail for "biased" and "non-finite/negative", inconclusive for
+:data:`evidence.INCONCLUSIVE`); per parameter sweep × estimator ``finite``.
+"""
+
+from __future__ import annotations
+
+from mcillum.integrators import registry
+
+from ..results import CaseRow, Check, Sweep, SweepRow
+from . import check
+from .evidence import BY_DESIGN, FAILING, HEAVY, INCONCLUSIVE, NOT_REPLICATED, case_verdict
+
+
+def judge(case_id: str, rows: dict[str, CaseRow], contains: tuple[str, ...],
+          pixels: int) -> list[Check]:
+    """Each row's verdict (:func:`evidence.case_verdict`, written into the
+    row), then the case's checks: ``contains`` is what the scene header
+    declares, ``pixels`` the image's pixel count."""
+    for row in rows.values():
+        row.verdict = case_verdict(row, pixels)
+    return [*refuses(case_id, rows, contains), *stable(case_id, rows)]
+
+
+def refuses(case_id: str, rows: dict[str, CaseRow], contains: tuple[str, ...]) -> list[Check]:
+    """An estimator refuses the scene exactly when its registry facts say it
+    cannot reach some of the content the scene header declares."""
+    out = []
+    for name, row in rows.items():
+        declared = not registry.facts(name).renders(contains)
+        refused = row.refused
+        if not (refused or declared):
+            continue
+        out.append(check(case_id, name, "refuses", refused and declared,
+                         "refused as declared" if refused and declared else
+                         ("refused, but its facts say it reaches "
+                          f"{', '.join(contains) or 'everything here'}"
+                          if refused else "rendered a scene it must refuse")))
+    return out
+
+
+def stable(case_id: str, rows: dict[str, CaseRow]) -> list[Check]:
+    """Every estimator that rendered has a verdict other than biased or
+    non-finite/negative."""
+    return [check(case_id, name, "stable",
+                  "fail" if row.verdict in FAILING else
+                  "inconclusive" if row.verdict in INCONCLUSIVE else "pass",
+                  verdict_line(row.verdict, row.numbers))
+            for name, row in rows.items() if row.verdict != "refused"]
+
+
+def verdict_line(v: str, n) -> str:
+    """One line for a failure-case verdict and its numbers."""
+    if v == "non-finite/negative":
+        return (f"{n.nonfinite_values} NaN/Inf and {n.negative_values} negative values in "
+                "the renders")
+    if v == "biased (opt-in)":
+        return (f"allow_unreachable=true: image mean {100 * n.image_mean_ratio:.1f} % of "
+                f"path's ({100 * n.missing_fraction:.1f} % missing)")
+    rel, t = n.relmse, n.test
+    text = (f"{v}: relMSE median {rel.median:.3g}, p99 {rel.p99:.3g}, max {rel.max:.3g}; "
+            f"fireflies {100 * n.firefly_fraction:.3f} %")
+    if v == HEAVY:
+        text += f"; {t.reason}"
+        if n.sun is not None:
+            s, hits = n.sun, n.sun.expected_sun_hits_per_pixel
+            text += (f"; without the sun: {s.sunless_outcome or 'not biased'}; the sun "
+                     f"({s.sun['solid_angle']:.2g} sr, {100 * s.sun_share_of_image:.0f} % of "
+                     "path's image) is expected "
+                     + (f"{hits:.2g} direct hits per pixel in all {n.samples_per_pixel} samples"
+                        if hits is not None else
+                        "to be hit an unknown number of times (its facts give no largest pdf)"))
+    elif v == NOT_REPLICATED:
+        text += (f"; {t.reason}; no rejection replicated in {n.seeds} fresh renders "
+                 f"({t.rejected_pixels} px rejected, pooled p = {min(t.pooled_p):.3g})")
+    elif v in ("biased", BY_DESIGN) and n.sun is not None and not n.sun.sunless_passed:
+        text += f"; biased without the sun too: {n.sun.sunless_reason}; {n.sun.sunless_test}"
+    elif t is not None:
+        text += f"; {t.reason + ' — ' if t.reason else ''}{t.test}"
+    return text
+
+
+def judge_sweep(case_id: str, rows: list[SweepRow], sweep: Sweep) -> list[Check]:
+    """A parameter sweep's checks: ``finite`` per estimator."""
+    return sweep_finite(case_id, rows, sweep)
+
+
+def sweep_finite(case_id: str, rows: list[SweepRow], sweep: Sweep) -> list[Check]:
+    """No NaN, Inf or negative value at any swept parameter value."""
+    values = sweep.values
+    out = []
+    for row in rows:
+        ok = row.nonfinite_values == 0
+        out.append(check(case_id, row.name, "finite", ok,
+                         f"relMSE ×{row.growth:.3g} from {sweep.param} = {values[0]} to "
+                         f"{values[-1]}" if ok and row.growth is not None else
+                         f"{row.nonfinite_values} NaN/Inf/negative values"))
+    return out

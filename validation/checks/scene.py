@@ -1,0 +1,112 @@
+"""The checks of a scene comparison, per estimator: ``finite`` (no NaN/Inf),
+``unbiased`` (the pooled batch-means test of all rungs, read by the rules of
+evidence), ``converges`` (the slope of relMSE against spp); for an estimator
+biased by design (a quadrature) ``bias_shrinks`` (from N = 16 to 256
+directions) and ``calibrated`` (its posterior std against the measured
+error) instead, from the quadrature stage.
+"""
+
+from __future__ import annotations
+
+import math
+
+from ..results import Check, Convergence, EstimatorResult, Quadrature, Unbiasedness
+from . import by_estimator, check, evidence
+from .evidence import Evidence, by_design
+
+
+def judge(scene_id: str, measured: dict[str, EstimatorResult],
+          found: dict[str, Evidence], quadrature: dict[str, Quadrature]) -> list[Check]:
+    """Decide each estimator's unbiasedness and convergence from what the
+    stages ``found`` (written into its records, every estimator's, biased by
+    design or not), then every check of the scene, estimator by estimator."""
+    for name, est in measured.items():
+        decide_unbiasedness(est.unbiasedness, found[name])
+        decide_convergence(est.convergence, found[name].heavy)
+    return by_estimator([*finite(scene_id, measured), *unbiased(scene_id, measured),
+                         *converges(scene_id, measured), *bias_shrinks(scene_id, quadrature),
+                         *calibrated(scene_id, quadrature)])
+
+
+def decide_unbiasedness(u: Unbiasedness, e: Evidence) -> None:
+    """The verdict of :func:`evidence.unbiasedness`, written into ``u``."""
+    d = evidence.unbiasedness(e)
+    u.outcome, u.reason = d.outcome, d.reason
+    u.rejected_up, u.rejected_down = d.rejected_up, d.rejected_down
+    u.tail_events, u.samples_needed = d.tail_events, d.samples_needed
+
+
+def decide_convergence(c: Convergence, heavy: bool) -> None:
+    """The verdict of :func:`evidence.convergence_outcome`, written into ``c``."""
+    c.outcome, c.message = evidence.convergence_outcome(c, heavy)
+    c.passed = c.outcome == "pass"
+
+
+def finite(scene_id: str, measured: dict[str, EstimatorResult]) -> list[Check]:
+    """No NaN or Inf in any render of any rung."""
+    out = []
+    for name, est in measured.items():
+        ok = all(r.nonfinite_fraction == 0 for r in est.runs)
+        out.append(check(scene_id, name, "finite", ok,
+                         "no NaN/Inf" if ok else "non-finite pixels in renders"))
+    return out
+
+
+def unbiased(scene_id: str, measured: dict[str, EstimatorResult]) -> list[Check]:
+    """The verdict on each estimator's unbiasedness; not for estimators biased
+    by design (their bias is measured against N instead: :func:`bias_shrinks`)."""
+    out = []
+    for name, est in measured.items():
+        if by_design(name):
+            continue
+        u = est.unbiasedness
+        out.append(check(scene_id, name, "unbiased", u.outcome,
+                         u.summary if u.outcome == "pass" else f"{u.reason} — {u.summary}"))
+    return out
+
+
+def converges(scene_id: str, measured: dict[str, EstimatorResult]) -> list[Check]:
+    """The error falls with spp as Monte Carlo's should
+    (:func:`evidence.convergence_outcome`)."""
+    return [check(scene_id, name, "converges", est.convergence.outcome, est.convergence.message)
+            for name, est in measured.items() if not by_design(name)]
+
+
+def bias_shrinks(scene_id: str, quadrature: dict[str, Quadrature]) -> list[Check]:
+    """An estimator biased by design: its rms bias at N = 256 directions is
+    below that at N = 16 by more than twice the standard error of the
+    difference (pass), above it by as much (fail), else inconclusive."""
+    out = []
+    for name, q in quadrature.items():
+        if not q.bias or len(q.bias) < 2:
+            continue
+        lo, hi = q.bias[0], q.bias[-1]
+        se = math.hypot(lo.rms_bias_se, hi.rms_bias_se)
+        text = (f"rms bias {lo.rms_bias:.2%} ± {lo.rms_bias_se:.2%} at N = {lo.directions}, "
+                f"{hi.rms_bias:.2%} ± {hi.rms_bias_se:.2%} at N = {hi.directions} "
+                f"(of the reference's rms)")
+        if lo.rms_bias - hi.rms_bias > 2 * se:
+            outcome = "pass"
+        elif hi.rms_bias - lo.rms_bias > 2 * se:
+            outcome, text = "fail", "the bias grows with N: " + text
+        else:
+            outcome, text = "inconclusive", "no difference K renders resolve: " + text
+        out.append(check(scene_id, name, "bias_shrinks", outcome, text))
+    return out
+
+
+def calibrated(scene_id: str, quadrature: dict[str, Quadrature]) -> list[Check]:
+    """The posterior std predicts the error: median measured RMSE over
+    predicted std within evidence.CALIBRATED (pass); otherwise
+    inconclusive, naming the direction (a prior that does not fit the
+    lighting is a finding about the scene, not a broken estimator)."""
+    out = []
+    for name, q in quadrature.items():
+        c = q.calibration
+        if c is None:
+            continue
+        text = (f"{c.verdict}: measured RMSE / predicted std median {c.median:.2f} "
+                f"(quartiles {c.q25:.2f}–{c.q75:.2f}) over {c.pixels} pixel channels")
+        ok = c.verdict == "calibrated" or c.verdict.startswith("exact")
+        out.append(check(scene_id, name, "calibrated", "pass" if ok else "inconclusive", text))
+    return out

@@ -1,0 +1,123 @@
+"""The scene set: every XML file in scenes/ and what its header declares.
+
+Each scene opens with a comment that says what it tests (first paragraph:
+``<name>: <summary>``) and, on a line ``Contains: ...``, the kinds of content
+(:data:`~mcillum.integrators.scene_checks.KINDS`) that a continuous hemisphere
+pdf cannot reach: delta lights, delta lobes, transmission. Which estimators
+render a scene follows from that line and each estimator's registry facts
+(``registry.facts(name).renders(info.contains)``); those that cannot must
+refuse it. A scene without the line holds none of them.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from dataclasses import dataclass, field
+
+from mcillum.integrators.scene_checks import KINDS
+
+#: scenes/ beside the package's subfolders (in a checkout and when installed):
+#: three folders up from validation/plan/.
+SCENES_DIR = os.path.join(
+    os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "scenes")
+
+
+@dataclass(frozen=True)
+class SceneInfo:
+    name: str
+    path: str
+    summary: str                                  # first paragraph of the comment
+    contains: tuple[str, ...] = field(default=())
+
+
+def _header(path: str) -> str:
+    with open(path, encoding="utf-8") as f:
+        text = f.read()
+    m = re.search(r"<!--(.*?)-->", text, re.S)
+    if not m:
+        raise ValueError(f"{path}: scene has no header comment saying what it tests")
+    return m.group(1)
+
+
+_DEFAULT = re.compile(r'<default\s+name="([^"]+)"\s+value="([^"]*)"')
+
+
+def defaults(path: str) -> dict[str, str]:
+    """The ``<default name=... value=...>`` $-parameters declared in an XML file."""
+    with open(path, encoding="utf-8") as f:
+        return dict(_DEFAULT.findall(f.read()))
+
+
+_PLACEHOLDER = re.compile(r"\$([A-Za-z_]\w*)")
+
+
+def expand(path: str, text: str, defines: dict) -> str:
+    """``text`` (a scene's summary) with each ``$name`` replaced by the value
+    it is rendered with: ``defines``, else the file's default. A map given as
+    a file shows as its name (``sunrise``, not a cache path)."""
+    values = {**defaults(path), **{k: str(v) for k, v in defines.items()}}
+    if "envmap" in values:
+        values["envmap"] = os.path.splitext(os.path.basename(values["envmap"]))[0]
+    return _PLACEHOLDER.sub(lambda m: values.get(m.group(1), m.group(0)), text)
+
+
+def _contains(header: str, path: str) -> tuple[str, ...]:
+    m = re.search(r"^\s*Contains:\s*(.+)$", header, re.M)
+    kinds = tuple(m.group(1).split()) if m else ()
+    unknown = [k for k in kinds if k not in KINDS]
+    if unknown:
+        raise ValueError(f"{path}: 'Contains:' names {', '.join(unknown)}; the kinds are "
+                         f"{', '.join(KINDS)}")
+    return kinds
+
+
+def index(directory: str = SCENES_DIR) -> dict[str, SceneInfo]:
+    """Scene name → :class:`SceneInfo`, for every ``*.xml`` in ``directory``."""
+    out = {}
+    for file in sorted(os.listdir(directory)):
+        if not file.endswith(".xml"):
+            continue
+        path = os.path.join(directory, file)
+        header = _header(path)
+        paragraph = header.strip().split("\n\n")[0]
+        summary = " ".join(line.strip() for line in paragraph.splitlines())
+        out[file[:-4]] = SceneInfo(file[:-4], path, summary, _contains(header, path))
+    return out
+
+
+def path(name: str) -> str:
+    scenes = index()
+    if name not in scenes:
+        raise ValueError(f"unknown scene '{name}'; available: {', '.join(scenes)}")
+    return scenes[name].path
+
+
+# ------------------------------ Referenced files --------------------------------
+
+_FILE_REF = re.compile(r'(?:name="filename"\s+value|<include\s+filename)="([^"]*)"')
+
+
+def referenced_files(scene_path: str, defines: dict) -> list[str]:
+    """The scene file and every file it references, recursively, after
+    substituting ``$``-parameters (defaults from the file, then ``defines``)."""
+    seen: list[str] = []
+
+    def visit(path: str, params: dict):
+        path = os.path.abspath(path)
+        if path in seen:
+            return
+        seen.append(path)
+        if not path.endswith(".xml"):
+            return
+        text = open(path, encoding="utf-8").read()
+        local = {**defaults(path), **params}
+        for ref in _FILE_REF.findall(text):
+            for k, v in sorted(local.items(), key=lambda kv: -len(kv[0])):
+                ref = ref.replace(f"${k}", str(v))
+            target = ref if os.path.isabs(ref) else os.path.join(os.path.dirname(path), ref)
+            if os.path.isfile(target):
+                visit(target, local)
+
+    visit(scene_path, {k: str(v) for k, v in defines.items()})
+    return seen

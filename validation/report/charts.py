@@ -1,0 +1,177 @@
+"""Charts of a validation run (matplotlib, Agg, headless), as SVG text.
+
+Every builder takes records of :mod:`~mcillum.validation.results` and returns an SVG string, so
+the report can inline it and tests can check it without rendering anything.
+Each estimator keeps one colour on every chart: its registry colour, as the
+run recorded it (:func:`palette`).
+"""
+
+from __future__ import annotations
+
+import io
+
+import matplotlib
+import numpy as np
+
+from mcillum.integrators import registry
+
+from ..results import CaseResult, Results, SceneResult
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402  (after choosing the headless backend)
+
+
+def palette(results: Results) -> dict[str, str]:
+    """Estimator name → colour for every estimator of a run: the colour its
+    facts recorded, else a spare one (stable for the run)."""
+    names = list(dict.fromkeys([e.name for s in results.scenes for e in s.estimators]
+                               + [e.name for c in results.failures for e in c.estimators]))
+    spare = registry.palette([n for n in names if n not in results.estimator_facts])
+    return {n: results.estimator_facts[n].colour if n in results.estimator_facts
+            else spare[n] for n in names}
+
+
+def _finish(fig, ax, xlabel: str, ylabel: str, title: str) -> str:
+    """Label a log-log axis, grid and legend it, and return the figure as SVG."""
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(True, which="both", alpha=0.3)
+    # beside the axes: with eight estimators the lines fill every corner
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)
+    return _svg(fig)
+
+
+def _svg(fig) -> str:
+    buf = io.StringIO()
+    fig.savefig(buf, format="svg", bbox_inches="tight")
+    plt.close(fig)
+    text = buf.getvalue()
+    return text[text.index("<svg"):]  # drop the XML prolog for inlining
+
+
+def error_vs_time(scene: SceneResult, colours: dict) -> str:
+    """The speed stage: relMSE against wall time per render at each budget,
+    log-log, with 95 % intervals on both axes (relMSE: Student-t over the K
+    renders; time: the range of the K renders); the budgets as dotted lines."""
+    sp = scene.speed
+    fig, ax = plt.subplots(figsize=(5.6, 4.0))
+    for name in sp.budgets[0].estimators:
+        runs = [b.estimators[name] for b in sp.budgets]
+        t = np.array([np.mean(r.wall_seconds) for r in runs]) * 1e3
+        t_err = np.array([[t_ - min(r.wall_seconds) * 1e3, max(r.wall_seconds) * 1e3 - t_]
+                          for t_, r in zip(t, runs)]).T
+        e = np.array([r.relmse for r in runs])
+        e_err = np.array([[r.relmse - r.relmse_ci.low, r.relmse_ci.high - r.relmse]
+                          for r in runs]).T
+        ax.errorbar(t, e, yerr=np.maximum(e_err, 0), xerr=np.maximum(t_err, 0), fmt="o-",
+                    color=colours[name], label=name, ms=4, capsize=2, lw=1.2)
+    for b in sp.budgets:
+        ax.axvline(b.seconds * 1e3, color="#999999", ls=":", lw=1)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    return _finish(fig, ax, f"wall time per render at {sp.res}² [ms] (budgets dotted)",
+                   "relMSE (ε = 0.01), 95 % interval", f"{scene.name}: accuracy vs time")
+
+
+def error_vs_spp(scene: SceneResult, colours: dict) -> str:
+    """relMSE against spp with the fitted slope in the legend and an ideal
+    −1 slope through the first point of the noisiest estimator."""
+    fig, ax = plt.subplots(figsize=(5.2, 3.8))
+    worst = None
+    for est in scene.estimators:
+        spp = [r.spp for r in est.runs]
+        e = [r.relmse for r in est.runs]
+        c = est.convergence
+        slope = "exact" if c.exact else f"slope {c.slope:+.2f}"
+        ax.loglog(spp, e, "o-", color=colours[est.name], ms=4, label=f"{est.name} ({slope})")
+        if worst is None or e[0] > worst[1]:
+            worst = (spp[0], e[0], spp[-1])
+    if worst:
+        s0, e0, s1 = worst
+        xs = np.array([s0, s1], float)
+        ax.loglog(xs, e0 * (xs / s0) ** -1.0, "k--", lw=1, label="ideal slope −1")
+    return _finish(fig, ax, "samples per pixel", "relMSE (ε = 0.01)",
+                   f"{scene.name}: convergence")
+
+
+def error_spread(scene: SceneResult, colours: dict) -> str:
+    """Per-render relMSE over seeds at the top spp (heavy-tail evidence):
+    one strip of points per estimator, median marked."""
+    fig, ax = plt.subplots(figsize=(5.2, 2.8))
+    names = [e.name for e in scene.estimators]
+    for i, est in enumerate(scene.estimators):
+        per = np.asarray(est.top.relmse_per_render, float)
+        jitter = np.linspace(-0.15, 0.15, len(per)) if len(per) > 1 else np.zeros(1)
+        ax.semilogy(i + jitter, per, "o", color=colours[est.name], ms=3, alpha=0.7)
+        ax.hlines(np.median(per), i - 0.25, i + 0.25, color="k", lw=1)
+    ax.set_xticks(range(len(names)), names, fontsize=7, rotation=25, ha="right")
+    ax.set_ylabel("relMSE of one render")
+    ax.set_title(f"{scene.name}: error over seeds at {scene.estimators[0].top.spp} spp")
+    ax.grid(True, axis="y", which="both", alpha=0.3)
+    return _svg(fig)
+
+
+def efficiency_summary(results: Results, colours: dict) -> str:
+    """Efficiency of each estimator relative to `path` at each scene's largest
+    equal-time budget (speed stage), with 95 % intervals, log bars."""
+    reference = registry.REFERENCE
+    scenes = [s for s in results.scenes if s.speed is not None]
+    names = [n for n in dict.fromkeys(n for s in scenes for n in s.speed.efficiency_vs_path)
+             if n != reference]
+    fig, ax = plt.subplots(figsize=(7.5, 3.6))
+    width = 0.8 / max(len(names), 1)
+    for j, name in enumerate(names):
+        ratio, low, high = [], [], []
+        for s in scenes:
+            r = s.speed.efficiency_vs_path.get(name)
+            ratio.append(r.ratio if r else np.nan)
+            low.append(r.ratio - r.ci.low if r else 0.0)
+            high.append(r.ci.high - r.ratio if r else 0.0)
+        x = np.arange(len(scenes)) + (j - (len(names) - 1) / 2) * width
+        ax.bar(x, ratio, width, color=colours[name], label=name,
+               yerr=[np.maximum(low, 0), np.maximum(high, 0)], capsize=2,
+               error_kw={"lw": 0.8})
+    ax.axhline(1.0, color=colours.get(reference, "k"), lw=1, ls="--", label="path = 1")
+    ax.set_yscale("log")
+    ax.set_xticks(range(len(scenes)), [s.name for s in scenes], fontsize=8)
+    ax.set_ylabel("efficiency / efficiency of path")
+    ax.set_title("Efficiency 1/(relMSE·time) relative to Mitsuba's path, at equal time")
+    ax.grid(True, axis="y", which="both", alpha=0.3)
+    ax.legend(fontsize=7)
+    return _svg(fig)
+
+
+def colour_bar(vmin: float, vmax: float, cmap: str, label: str, log: bool = True) -> str:
+    fig, ax = plt.subplots(figsize=(4.5, 0.5))
+    norm = (matplotlib.colors.LogNorm if log else matplotlib.colors.Normalize)(vmin=vmin,
+                                                                              vmax=vmax)
+    fig.colorbar(matplotlib.cm.ScalarMappable(norm=norm, cmap=cmap), cax=ax,
+                 orientation="horizontal", label=label)
+    return _svg(fig)
+
+
+def failure_sweep(case: CaseResult, colours: dict) -> str:
+    """A glossy sweep: relMSE at fixed spp, and relMSE × seconds per render
+    (error at equal time, lower is better), against the swept parameter."""
+    values = np.asarray(case.sweep.values, float)
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
+    for est in case.estimators:
+        rel = np.asarray(est.relmse, float)
+        work = rel * np.asarray(est.seconds, float)
+        for ax, y in zip(axes, (rel, work)):
+            ax.loglog(values, y, "o-", color=colours.get(est.name, "#777777"), ms=4,
+                      label=est.name)
+    for ax, label in zip(axes, (f"relMSE at {case.spp} spp", "relMSE × seconds per render")):
+        ax.set_xlabel(case.sweep.param)
+        ax.set_ylabel(label)
+        ax.grid(True, which="both", alpha=0.3)
+        # ticks at the swept values only (log minor labels overprint each other)
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+        ax.set_xticks(values, [f"{v:g}" for v in values])
+        if case.sweep.param == "alpha":
+            ax.invert_xaxis()         # narrower lobes to the right
+    axes[0].set_title(f"{case.label}: error as the lobe narrows")
+    axes[1].set_title("error against time")
+    axes[1].legend(fontsize=7)
+    return _svg(fig)

@@ -1,0 +1,113 @@
+"""The reference-comparison report: one self-contained HTML page.
+
+Reads the run's :class:`~mcillum.validation.results.Results`
+(``DIR/results.json``) and the EXR images beside it, renders nothing, and
+writes ``DIR/report/index.html`` (images as PNG data URIs, charts as inline
+SVG, inline CSS, no script, a Content-Security-Policy that forbids every
+external request).
+
+Tone mapping, the same for every image of a scene: x · 2^EV, clipped to
+[0, 1], sRGB curve; EV puts the reference's 99th-percentile channel value at 1.
+Error maps: :func:`metrics.relative_error_map`, |x − r| / (|r| + 0.01) per
+pixel (channel mean), on one shared logarithmic colour scale per scene.
+"""
+
+from __future__ import annotations
+
+import html
+import os
+import time
+
+from mcillum import files
+from mcillum.errors import UserError
+from mcillum.integrators.scene_checks import KIND_NAMES
+
+from .. import results
+from ..results import Results, layout
+from ..stats import metrics
+from . import charts
+from .failures import failures_section
+from .parts import swatch
+from .scenes import scene_section
+
+
+def _executor(where: dict) -> str:
+    """Where the renders ran (results ``executor``), in a few words."""
+    if where.get("kind") != "ray":
+        return "rendered in one process"
+    nodes = len(where.get("nodes", []))
+    return (f"rendered on Ray ({where.get('workers', '?')} workers on {nodes} "
+            f"node{'s' if nodes != 1 else ''})")
+
+
+
+def _estimators(res: Results, colours: dict) -> str:
+    """The estimators of the run: name, what they are, what they cannot reach."""
+    rows = "".join(
+        f"<tr><td>{swatch(name, colours)}</td><td>{html.escape(f.display_name)}</td>"
+        f"<td>{html.escape(', '.join(KIND_NAMES.get(k, k) for k in f.unreachable))}</td></tr>"
+        for name, f in res.estimator_facts.items())
+    return ("<table><tr><th>estimator</th><th>what it is</th><th>refuses scenes with</th>"
+            f"</tr>{rows}</table>") if rows else ""
+
+
+CSS = """
+body{font:14px/1.45 system-ui,sans-serif;margin:24px auto;max-width:1200px;color:#222;padding:0 12px}
+h1{margin-bottom:4px} h2{border-top:2px solid #ddd;padding-top:12px} h2 small{color:#777;font-weight:normal}
+.row{display:flex;flex-wrap:wrap;gap:10px;align-items:flex-start}
+figure{margin:0;text-align:center;font-size:12px} figure img{image-rendering:pixelated;display:block}
+table{border-collapse:collapse;margin:10px 0;font-size:13px} td,th{border:1px solid #ccc;padding:4px 8px}
+.ok{color:#1a7f37} .warn{color:#a15c00} .bad{color:#c62828;font-weight:bold} .sw{display:inline-block;width:10px;height:10px;margin-right:6px}
+.verdict{font-size:18px;padding:8px 12px;display:inline-block;border-radius:4px}
+.pass{background:#e6f4ea} .fail{background:#fdecea} .inconclusive{background:#fff4e0} .desc{color:#555} svg{max-width:100%;height:auto}
+.bar svg{width:420px}
+"""
+
+
+def build(run_dir: str, res: Results | None = None) -> str:
+    """Write ``run_dir/report/index.html`` from ``res`` (read from
+    ``run_dir/results.json`` when not given); return its path. Raises
+    UserError naming an image of the run that is missing."""
+    res = res if res is not None else results.load(run_dir)
+    try:
+        return _write(run_dir, res)
+    except FileNotFoundError as err:
+        raise UserError(f"{err.filename or err} is missing (the report needs every image "
+                        f"of the run): run `mcillum validate --out {run_dir}` again") from None
+
+
+def _write(run_dir: str, res: Results) -> str:
+    colours = charts.palette(res)
+    checks, n = res.checks, res.counts()
+    m = res.machine
+    verdict = ("fail" if n["fail"] else "inconclusive" if n["inconclusive"] else "pass",
+               f"{n['pass']} of {len(checks)} checks pass, {n['inconclusive']} inconclusive, "
+               f"{n['fail']} fail")
+    toc = " · ".join(f"<a href='#{s.name}'>{s.name}</a>" for s in res.scenes)
+    by_design = {n for n, f in res.estimator_facts.items() if not f.unbiased}
+    body = "".join(scene_section(s, run_dir, colours, by_design) for s in res.scenes)
+    page = f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8">
+<meta http-equiv="Content-Security-Policy" content="default-src 'none'; img-src data:; style-src 'unsafe-inline'">
+<title>mcillum validation report</title><style>{CSS}</style></head><body>
+<h1>mcillum: estimators against Mitsuba's path tracer</h1>
+<p>{html.escape(res.created)} · {html.escape(m['platform'])}, {m['cpus']} CPUs ·
+variant <code>{html.escape(res.variant)}</code> · mitsuba {html.escape(res.mitsuba_version)},
+drjit {html.escape(res.drjit_version)} · profile <b>{html.escape(res.profile)}</b> ·
+{_executor(res.executor)} · {res.wall_seconds:.0f} s · report written {time.strftime('%Y-%m-%d %H:%M')}</p>
+<p class="verdict {verdict[0]}">{verdict[1]}</p>
+<p>Scenes: {toc} · <a href="#failures">where methods fail</a> · <a href="#summary">summary</a></p>
+<p>Each estimator renders every scene K times per spp; Mitsuba's <code>path</code> at the same
+max_depth is the reference. Unbiasedness: per-pixel Welch tests with each side's own variance
+(Šidák-corrected) and an image-mean test, family-wise α = {res.alpha}.
+relMSE = mean (x−r)²/(r²+{metrics.EPSILON}); efficiency = 1/(relMSE·time).</p>
+{_estimators(res, colours)}
+{body}
+{failures_section(res, run_dir, colours)}
+<section id="summary"><h2>Summary across scenes</h2>{charts.efficiency_summary(res, colours)}</section>
+</body></html>
+"""
+    target = layout.report_html(run_dir)
+    layout.made(os.path.dirname(target))
+    files.write_text(target, page)
+    return target

@@ -1,0 +1,200 @@
+"""The report's section of one scene comparison: the speed-and-images
+stage (equal-time images, error and FLIP maps, the worst region, accuracy
+against time), the small-image statistics and the quadrature stage."""
+
+from __future__ import annotations
+
+import html
+import os
+
+import numpy as np
+
+from mcillum import files, images
+
+from ..results import SceneResult, layout, ranking_text
+from ..stats import metrics
+from . import charts
+from .parts import ERROR_CMAP, error_rgb, flip_rgb, fmt, img, outcome, swatch, worst_window
+
+
+def scene_section(scene: SceneResult, run_dir: str, colours: dict,
+                   by_design=frozenset()) -> str:
+    speed = _speed_section(scene, run_dir, colours) if scene.speed else ""
+    return f"""
+<section id="{scene.name}">
+<h2>{html.escape(scene.name)} <small>max_depth {scene.max_depth}</small></h2>
+<p class=desc>{html.escape(scene.summary)}</p>
+{speed}
+{_statistics_section(scene, run_dir, colours, by_design)}
+{_quadrature_section(scene, colours) if scene.quadrature else ""}
+</section>"""
+
+
+def _quadrature_section(scene: SceneResult, colours: dict) -> str:
+    """Estimators of N directions: equal rays against cosine_hemisphere, bias
+    against N, calibration of the posterior std (quadrature.py)."""
+    rows, bias_rows = [], []
+    for q in scene.quadrature:
+        r, c = q.equal_rays, q.calibration
+        rays = (f"{r.ratio:.3g} [{r.ratio_low:.3g}, {r.ratio_high:.3g}]"
+                f" ({r.seconds / r.baseline_seconds:.2f}× the time)") if r else "—"
+        good = c is not None and (c.verdict == "calibrated" or c.verdict.startswith("exact"))
+        cal = (f"<span class={'ok' if good else 'warn'}>{html.escape(c.verdict)}</span>: median "
+               f"{fmt(c.median, '.2f')} ({fmt(c.q25, '.2f')}–{fmt(c.q75, '.2f')})"
+               ) if c else "—"
+        rows.append(f"<tr><td>{swatch(q.name, colours)}</td><td>{q.directions}</td>"
+                    f"<td>{rays}</td><td>{cal}</td></tr>")
+        for b in q.bias or []:
+            bias_rows.append(f"<tr><td>{swatch(q.name, colours)}</td><td>{b.directions}</td>"
+                             f"<td>{100 * b.rms_bias:.2f} % ± {100 * b.rms_bias_se:.2f} %</td>"
+                             f"<td>{100 * b.mean_bias:+.2f} %</td></tr>")
+    q0 = scene.quadrature[0]
+    bias = ("<p>Bias against N (an estimator biased by design): rms over pixels of the "
+            "mean of K renders less the reference, corrected for the noise of both, "
+            "relative to the reference's rms; and the image mean's relative bias.</p>"
+            "<table><tr><th>estimator</th><th>N</th><th>rms bias ± se</th>"
+            f"<th>image-mean bias</th></tr>{''.join(bias_rows)}</table>") if bias_rows else ""
+    return f"""
+<h3>Quadrature: N directions per shading point</h3>
+<p>At {q0.spp} camera spp, {q0.renders} renders each. <b>Equal rays</b>: relMSE of N
+directions × {q0.spp} spp over that of <code>cosine_hemisphere</code> at N·{q0.spp} spp
+(below 1: the point set wins), 95 % interval. <b>Calibration</b>: per pixel, the measured
+RMSE over the predicted posterior std (the reference's variance added); calibrated when the
+median lies in [0.67, 1.5]
+(above: over-confident).</p>
+<table><tr><th>estimator</th><th>N</th><th>relMSE ÷ cosine at equal rays</th>
+<th>posterior std</th></tr>{''.join(rows)}</table>
+{bias}"""
+
+
+
+def _scaling(ev: float) -> str:
+    """The tone mapping's scale factor as the page writes it: ``x`` when the
+    exposure rounds to 0 (not ``x·2^-0.0``), else ``x·2^ev``."""
+    return "x" if abs(ev) < 0.05 else f"x·2<sup>{ev:+.1f}</sup>"
+
+
+def _timed_on(sp) -> str:
+    if not sp.timed_on:
+        return ""
+    return (f" Every render of this stage was timed alone on "
+            f"{html.escape(', '.join(sp.timed_on))}.")
+
+
+def _speed_section(scene: SceneResult, run_dir: str, colours: dict) -> str:
+    """The speed-and-images stage: equal-time images at the display
+    resolution, error and FLIP maps, the worst region, accuracy against time."""
+    sp = scene.speed
+    d = layout.display_dir(run_dir, scene.name)
+    ref, _ = files.read_exr(os.path.join(d, "reference.exr"))
+    ev = images.exposure_for(ref)
+    top = sp.budgets[-1]
+    names = list(top.estimators)
+    shots, flips = {}, {}
+    for n in names:
+        shots[n] = files.read_exr(os.path.join(d, f"{n}.exr"))
+        if not np.isnan(sp.mean_flip.get(n, np.nan)):
+            flips[n] = files.read_exr(os.path.join(d, f"{n}.exr"), "flip")[0][..., 0]
+    side = 256                              # 128² at 2×, 256² as it is
+    row = [img(images.tonemap(ref, ev), f"reference (path)<br>{sp.reference.spp} spp", side)]
+    for n in names:
+        x, meta = shots[n]
+        flip = sp.mean_flip.get(n, np.nan)
+        row.append(img(images.tonemap(x, ev), f"{swatch(n, colours)}<br>{meta['spp']} spp, "
+                        f"{meta['render_seconds'] * 1e3:.0f} ms"
+                        + ("" if np.isnan(flip) else f", FLIP {flip:.3f}"), side))
+    errors = [metrics.relative_error_map(shots[n][0], ref) for n in names]
+    positive = np.concatenate([e[e > 0].ravel() for e in errors] + [np.array([1e-3])])
+    vmax = max(float(np.percentile(positive, 99)), 1e-2)
+    vmin = vmax / 1e3
+    err_row = [img(error_rgb(e, vmin, vmax), f"{n}: mean {e.mean():.3g}", side)
+               for n, e in zip(names, errors)]
+    flip_row = [img(flip_rgb(flips[n]), f"{n}: mean FLIP {sp.mean_flip[n]:.3f}", side)
+                for n in names if n in flips]
+    y, x0, size = worst_window(errors)
+    crop = lambda a: a[y:y + size, x0:x0 + size]  # noqa: E731
+    crops = [img(images.tonemap(crop(ref), ev), "reference", side // 2)]
+    crops += [img(images.tonemap(crop(shots[n][0]), ev), n, side // 2) for n in names]
+    notes = "".join(f"<li>{html.escape(n)}</li>" for n in sp.notes)
+    ref_info = sp.reference
+    capped = f" — capped ({html.escape(ref_info.capped)})" if ref_info.capped else ""
+    return f"""
+<h3>Equal time at {sp.res}²: {top.seconds * 1e3:.0f} ms per render</h3>
+<p>Every estimator got the time Mitsuba's <code>path</code> needs for {top.path_spp} spp;
+its spp come from its own cost model t = a + b·spp. Reference: <code>path</code>,
+{ref_info.spp} spp in {ref_info.passes} passes{capped}.{_timed_on(sp)} Tone mapping for every image:
+{_scaling(ev)}, clipped to [0, 1], sRGB. Captions: spp and the measured time of the
+render shown.</p>
+<div class=row>{''.join(row)}</div>
+<h4>Relative error |x−r|/(|r|+{metrics.EPSILON}) of these renders</h4>
+<div class=row>{''.join(err_row)}</div>
+<div class=bar>{charts.colour_bar(vmin, vmax, ERROR_CMAP, "relative error (shared scale)")}</div>
+<h4>FLIP (HDR mode: flip-evaluator tone-maps both images, ACES, exposures from the
+reference; 0 = no visible difference, 1 = the largest)</h4>
+<div class=row>{''.join(flip_row) or '<p>FLIP is undefined here: the reference is black.</p>'}</div>
+<div class=bar>{charts.colour_bar(0.0, 1.0, ERROR_CMAP, "FLIP", log=False)}</div>
+<h4>Worst region ({size}×{size} px at x={x0}, y={y}, by summed relative error)</h4>
+<div class=row>{''.join(crops)}</div>
+<h4>Accuracy against time</h4>
+<div class=row>{charts.error_vs_time(scene, colours)}</div>
+{_speed_table(sp, colours)}
+{'<ul class=notes>' + notes + '</ul>' if notes else ''}"""
+
+
+def _speed_table(sp, colours: dict) -> str:
+    top = sp.budgets[-1]
+    rank = {p.estimator: p for p in sp.ranking}
+    rows = []
+    for n, run in top.estimators.items():
+        c, r, p = sp.cost_model[n], sp.efficiency_vs_path[n], rank[n]
+        tied = f" (tie: {', '.join(p.tied_with)})" if p.tied_with else ""
+        wall = float(np.median(run.wall_seconds)) * 1e3
+        rows.append(
+            f"<tr><td>{swatch(n, colours)}</td><td>{p.rank}{html.escape(tied)}</td>"
+            f"<td>{fmt(r.ratio)} [{fmt(r.ci.low)}, {fmt(r.ci.high)}]</td>"
+            f"<td>{fmt(run.relmse)} [{fmt(run.relmse_ci.low)}, {fmt(run.relmse_ci.high)}]</td>"
+            f"<td>{run.spp}</td><td class={'ok' if run.on_budget else 'warn'}>{wall:.0f}</td>"
+            f"<td>{c.fixed_s * 1e3:.1f} [{c.fixed_s_ci.low * 1e3:.1f}, "
+            f"{c.fixed_s_ci.high * 1e3:.1f}]</td>"
+            f"<td>{c.per_spp_s * 1e3:.2f} [{c.per_spp_s_ci.low * 1e3:.2f}, "
+            f"{c.per_spp_s_ci.high * 1e3:.2f}]</td></tr>")
+    return f"""<p>At {top.seconds * 1e3:.0f} ms, most efficient first ("=": the 95 % intervals
+overlap, a tie): <b>{html.escape(ranking_text(sp.ranking))}</b>.</p>
+<table><tr><th>estimator</th><th>rank</th><th>efficiency ÷ path [95 % CI]</th>
+<th>relMSE [95 % CI]</th><th>spp</th><th>median ms (K = {sp.renders})</th>
+<th>fixed cost a, ms [95 % CI]</th><th>per spp b, ms [95 % CI]</th></tr>
+{''.join(rows)}</table>"""
+
+
+def _statistics_section(scene: SceneResult, run_dir: str, colours: dict,
+                        by_design=frozenset()) -> str:
+    """The small-image statistics: unbiasedness, convergence, the ladder
+    (an estimator biased by design shows its slope, not tested)."""
+    rows = []
+    best_rel = min(e.top.relmse for e in scene.estimators)
+    for est in scene.estimators:
+        top, u, c = est.top, est.unbiasedness, est.convergence
+        slope = "exact" if c.exact else f"{c.slope:+.2f} [{c.low:+.2f}, {c.high:+.2f}]"
+        if est.name in by_design:
+            tested = (f"biased by design ({100 * u.pass_fraction:.1f} % of pixels pass)",
+                      f"not tested: {slope}")
+        else:
+            tested = (f"{outcome(u.outcome, u.reason)} ({100 * u.pass_fraction:.1f} %)",
+                      f"{outcome(c.outcome, c.message)} {slope}")
+        rows.append(
+            f"<tr><td>{swatch(est.name, colours)}</td>"
+            f"<td>{fmt(top.relmse)} ({fmt(top.relmse / best_rel if best_rel else None, '.2f')}×)</td>"
+            f"<td>{top.bias:+.2e} ± {top.bias_se:.1e}</td>"
+            f"<td>{tested[0]}</td><td>{tested[1]}</td></tr>")
+    ref_info = scene.reference
+    capped = f" — capped ({ref_info.capped})" if ref_info.capped else ""
+    spp = ", ".join(str(s) for s in scene.ladder)
+    return f"""
+<h3>Statistics at {scene.res}² ({scene.renders} renders per estimator at {spp} spp)</h3>
+<p>Small images, many renders: enough samples per pixel for per-pixel tests. Reference:
+<code>path</code>, {ref_info.spp} spp in {ref_info.passes} passes{capped}.</p>
+<table><tr><th>estimator</th><th>relMSE at {scene.ladder[-1]} spp (÷ best)</th><th>bias ± se</th>
+<th>unbiased (pixels passing)</th><th>slope [95 % CI]</th></tr>
+{''.join(rows)}</table>
+<div class=row>{charts.error_vs_spp(scene, colours)}</div>"""
+

@@ -1,0 +1,57 @@
+"""The records of the quadrature stage (stages/quadrature.py): equal rays
+against a Monte Carlo baseline, bias against N, calibration."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from .common import optional
+
+
+@dataclass(kw_only=True)
+class EqualRays:
+    """A point-set estimator against ``baseline`` at the same number of traced
+    directions per pixel (stages/quadrature.py)."""
+
+    baseline: str
+    baseline_spp: int            # N · spp
+    relmse: float                # each less the reference's relative variance
+    baseline_relmse: float
+    ratio: float                 # relmse / baseline_relmse (< 1: the set wins)
+    ratio_low: float             # 95 % interval
+    ratio_high: float
+    seconds: float               # median per render
+    baseline_seconds: float
+
+
+@dataclass(kw_only=True)
+class BiasAtN:
+    directions: int
+    rms_bias: float              # noise-corrected rms over pixels, / rms of the reference
+    rms_bias_se: float
+    mean_bias: float             # signed, image mean, / the reference's image mean
+
+
+@dataclass(kw_only=True)
+class Calibration:
+    """Measured RMSE over predicted posterior std, per pixel."""
+
+    median: float
+    q25: float
+    q75: float
+    pixels: int
+    verdict: str                 # calibrated | over-confident | under-confident | exact …
+
+
+@dataclass(kw_only=True)
+class Quadrature:
+    """What the quadrature stage measured of one estimator of N directions."""
+
+    name: str
+    directions: int
+    spp: int
+    renders: int
+    equal_rays: EqualRays | None = optional()
+    bias: list[BiasAtN] | None = optional()
+    calibration: Calibration | None = optional()
+

@@ -1,0 +1,79 @@
+"""The record of a whole run (results.json's top level) and its version."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from .cases import CaseResult
+from .common import OUTCOMES, Check
+from .scene import SceneResult
+
+SCHEMA = "mcillum.results"
+VERSION = 1
+#: 1: ``minor_version``, ``estimator_facts``, ``firefly_fraction`` per run, and
+#: in every failure-case row ``tail_ratio`` and the NaN/negative counts.
+#: 2: per scene ``speed`` (the speed-and-images stage at the display
+#: resolution); the small-image ``equal_time`` is no longer written.
+#: 3: three outcomes (checks/): ``outcome`` on every check, unbiasedness,
+#: convergence and failure-case test; ``seed_set``.
+#: 4: each ranking place holds the efficiency and interval it was ranked by;
+#: ``consistent_with_mc`` is false where no slope was fitted.
+#: 5: per scene ``quadrature`` (estimators of N directions: equal rays, bias
+#: against N, calibration of the posterior std); estimator facts ``unbiased``.
+#: 6: ``executor`` (where the renders ran: local or ray, workers, nodes) and
+#: per speed stage ``timed_on`` (the nodes that timed its renders).
+MINOR_VERSION = 6
+
+
+@dataclass(kw_only=True)
+class EstimatorInfo:
+    """The registry's facts of one estimator, as the run saw them."""
+
+    display_name: str
+    colour: str
+    unreachable: list[str]
+    max_direction_pdf: float | None
+    unbiased: bool = True                  # False: biased by design (a quadrature)
+
+
+@dataclass(kw_only=True)
+class Results:
+    created: str
+    profile: str
+    variant: str
+    mitsuba_version: str
+    drjit_version: str
+    machine: dict
+    alpha: float
+    reference_fraction: float
+    wall_seconds: float
+    scenes: list[SceneResult]
+    checks: list[Check]
+    failures: list[CaseResult] = field(default_factory=list)
+    estimator_facts: dict[str, EstimatorInfo] = field(default_factory=dict)
+    seed_set: int = 0
+    #: Where the renders ran (run/executors.py: ``record()``).
+    executor: dict = field(default_factory=lambda: {"kind": "local"})
+    #: What each metric means (stats/metrics.py: ``DEFINITIONS``).
+    definitions: dict[str, str] = field(default_factory=dict)
+    schema: str = SCHEMA
+    version: int = VERSION
+    minor_version: int = MINOR_VERSION
+
+    @property
+    def passed(self) -> bool:
+        """No check failed (inconclusive ones do not count against it)."""
+        return all(c.passed for c in self.checks)
+
+    @property
+    def failed(self) -> list[Check]:
+        return [c for c in self.checks if c.outcome == "fail"]
+
+    @property
+    def inconclusive(self) -> list[Check]:
+        return [c for c in self.checks if c.outcome == "inconclusive"]
+
+    def counts(self) -> dict[str, int]:
+        """How many checks had each outcome."""
+        return {o: sum(c.outcome == o for c in self.checks) for o in OUTCOMES}
+

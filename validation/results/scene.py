@@ -1,0 +1,103 @@
+"""The records of a scene comparison: per estimator its metrics at every
+rung of the spp ladder, the unbiasedness test and the convergence slope;
+the reference; the speed stage's and the quadrature stage's records."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from .common import Outcome, ReferenceSummary, optional
+from .quadrature import Quadrature
+from .speed import Speed
+
+
+@dataclass(kw_only=True)
+class RunStats:
+    """K renders of one estimator at one spp against the reference."""
+
+    spp: int
+    renders: int
+    relmse: float
+    relmse_per_render: list[float]
+    mse: float
+    mape: float
+    bias: float
+    bias_se: float
+    variance_per_render: float
+    nonfinite_fraction: float
+    median_seconds: float
+    seconds: list[float]
+    samples_per_second: float
+    efficiency: float
+    reference_relmse: float        # what the reference's own noise adds to relmse
+    firefly_fraction: float | None = None     # (None in runs before minor version 1)
+
+
+@dataclass(kw_only=True)
+class Unbiasedness(Outcome):
+    """The batch-means test of all rungs pooled against the reference."""
+
+    spp: int
+    passed: bool
+    pass_fraction: float
+    min_p: float
+    alpha: float
+    alpha_pixel: float
+    pooled_p: list[float]
+    summary: str
+    samples_per_pixel: int | None = optional()
+    #: The verdict of checks/scene.py by the rules of evidence (minor version
+    #: 3): pass | fail | inconclusive, why, rejected pixels by direction,
+    #: fireflies over all rungs, and (inconclusive) samples per pixel that
+    #: would see the tail.
+    outcome: str = ""
+    reason: str = ""
+    rejected_up: int = 0
+    rejected_down: int = 0
+    tail_events: int = 0
+    samples_needed: float | None = optional()
+
+
+@dataclass(kw_only=True)
+class Convergence(Outcome):
+    """Slope of log relMSE against log spp with its 95 % interval."""
+
+    slope: float
+    low: float
+    high: float
+    exact: bool
+    consistent_with_mc: bool        # −1 inside the fitted interval (exact: true; none fitted: false)
+    passed: bool
+    outcome: str = ""               # checks.evidence.convergence_outcome (minor version 3)
+    message: str = ""
+
+
+@dataclass(kw_only=True)
+class EstimatorResult:
+    name: str
+    params: dict
+    compile_seconds: float
+    runs: list[RunStats]
+    unbiasedness: Unbiasedness
+    convergence: Convergence
+
+    @property
+    def top(self) -> RunStats:
+        """The run at the highest spp."""
+        return self.runs[-1]
+
+
+@dataclass(kw_only=True)
+class SceneResult:
+    name: str
+    path: str
+    summary: str
+    res: int
+    max_depth: int
+    ladder: list[int]
+    renders: int
+    reference: ReferenceSummary
+    estimators: list[EstimatorResult]
+    speed: Speed | None = optional()
+    quadrature: list[Quadrature] | None = optional()
+

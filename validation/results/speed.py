@@ -1,0 +1,88 @@
+"""The records of the speed-and-images stage (stages/speed.py): the cost
+model, the equal-time budgets, efficiency against `path` and the ranking."""
+
+from __future__ import annotations
+
+import typing
+from dataclasses import dataclass, field
+
+from .common import ReferenceSummary, optional
+
+
+class Interval(typing.NamedTuple):
+    """A 95 % confidence interval; JSON: [low, high]."""
+
+    low: float
+    high: float
+
+
+@dataclass(kw_only=True)
+class CostModel:
+    """t(spp) = fixed_s + per_spp_s · spp of warm renders at the display
+    resolution (see stats/costs.py), with 95 % bootstrap intervals."""
+
+    fixed_s: float
+    per_spp_s: float
+    fixed_s_ci: Interval
+    per_spp_s_ci: Interval
+    timings: dict[str, list[float]]     # spp → wall seconds of each timed repeat
+
+
+@dataclass(kw_only=True)
+class BudgetRun:
+    """K renders of one estimator at one time budget."""
+
+    spp: int
+    wall_seconds: list[float]
+    relmse: float                       # mean over the K renders
+    relmse_ci: Interval
+    relmse_per_render: list[float]
+    on_budget: bool                     # median wall time within ±10 % of the budget
+    note: str | None = optional()      # why not, where it is not
+
+
+@dataclass(kw_only=True)
+class Budget:
+    """One equal-time budget: the time `path` needs for ``path_spp``."""
+
+    seconds: float
+    path_spp: int
+    estimators: dict[str, BudgetRun]
+    reference_relmse: float             # relMSE the reference's own noise adds
+
+
+@dataclass(kw_only=True)
+class Ratio:
+    ratio: float
+    ci: Interval
+
+
+@dataclass(kw_only=True)
+class Placement:
+    """One estimator's place in a ranking: 1 + the number of estimators whose
+    interval lies wholly above its own; those it cannot be told from."""
+
+    estimator: str
+    rank: int
+    tied_with: list[str]
+    efficiency: float | None = optional()     # 1/(relMSE·t), what it was ranked by
+    ci: Interval | None = optional()          # (minor version 4)
+
+
+@dataclass(kw_only=True)
+class Speed:
+    """The speed-and-images stage of one scene (stages/speed.py)."""
+
+    res: int
+    renders: int                        # K per estimator and budget
+    cost_model: dict[str, CostModel]
+    budgets: list[Budget]
+    efficiency_vs_path: dict[str, Ratio]   # at the largest budget
+    ranking: list[Placement]               # by efficiency at the largest budget
+    reference: ReferenceSummary
+    mean_flip: dict[str, float]            # at the largest budget, first render
+    notes: list[str] = field(default_factory=list)   # overhead and budget misses
+    #: The nodes whose renders were timed (one, unless a worker moved;
+    #: run/executors.py).
+    timed_on: list[str] = field(default_factory=list)
+

@@ -1,0 +1,178 @@
+"""The run's files for people and CI: results.csv (one row per scene ×
+estimator × spp), summary.md (the verdict, then a table per scene and the
+failures group) and JUnit XML (one test case per check)."""
+
+from __future__ import annotations
+
+import csv
+import io
+from xml.sax.saxutils import escape, quoteattr
+
+from mcillum import files
+
+from . import layout
+from .cases import CaseResult
+from .quadrature import Quadrature
+from .run import Results
+from .speed import Placement, Speed
+
+
+CSV_FIELDS = ["scene", "estimator", "spp", "renders", "relmse", "mse", "mape", "bias",
+              "bias_se", "variance_per_render", "nonfinite_fraction", "median_seconds",
+              "samples_per_second", "efficiency"]
+
+
+def write_csv(path: str, results: Results) -> None:
+    """results.csv: one row per scene × estimator × spp."""
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, CSV_FIELDS)
+    w.writeheader()
+    for scene in results.scenes:
+        for est in scene.estimators:
+            for run in est.runs:
+                w.writerow({"scene": scene.name, "estimator": est.name,
+                            **{k: getattr(run, k) for k in CSV_FIELDS[2:]}})
+    files.write_text(path, buf.getvalue())
+
+
+def summary(results: Results) -> str:
+    """summary.md: the verdict, then a table per scene and the failures group."""
+    checks, failed, n = results.checks, results.failed, results.counts()
+    lines = [f"# mcillum validation — profile {results.profile}",
+             "",
+             f"{n['pass']} of {len(checks)} checks pass, {n['inconclusive']} inconclusive, "
+             f"{n['fail']} fail; "
+             f"{results.variant}, mitsuba {results.mitsuba_version}, "
+             f"drjit {results.drjit_version}, {results.wall_seconds:.0f} s.", ""]
+    for scene in results.scenes:
+        ref = scene.reference
+        capped = f", capped: {ref.capped}" if ref.capped else ""
+        lines += [f"## {scene.name} ({scene.res}², max_depth {scene.max_depth})",
+                  "", f"Reference: `path`, {ref.spp} spp in {ref.passes} passes{capped}.",
+                  "",
+                  "| estimator | relMSE @ top spp | bias ± se | unbiased (pass %) | slope [95% CI] "
+                  "| samples/s | efficiency |",
+                  "|---|---|---|---|---|---|---|"]
+        for est in scene.estimators:
+            top, u, c = est.top, est.unbiasedness, est.convergence
+            facts = results.estimator_facts.get(est.name)
+            by_design = facts is not None and not facts.unbiased
+            lines.append(
+                f"| {est.name} | {top.relmse:.3g} | {top.bias:+.2e} ± {top.bias_se:.1e} | "
+                + ("biased by design " if by_design else f"{_word(u.outcome)} ")
+                + f"({100 * u.pass_fraction:.1f}) | "
+                + ("exact" if c.exact else
+                   ("not tested " if by_design else f"{_word(c.outcome)} ") +
+                   f"{c.slope:+.2f} [{c.low:+.2f}, {c.high:+.2f}]")
+                + f" | {top.samples_per_second / 1e6:.2f} M | {top.efficiency:.3g} |")
+        if scene.speed:
+            lines += ["", *speed_summary(scene.speed)]
+        for q in scene.quadrature or []:
+            lines += ["", quadrature_summary(q)]
+        lines.append("")
+    if results.failures:
+        lines += ["## Where methods fail", "",
+                  "| case | estimator | verdict | relMSE median / p99 / max | fireflies "
+                  "| spp to match path |", "|---|---|---|---|---|---|"]
+        for case in results.failures:
+            for est in case.estimators:
+                lines.append(f"| {case.label} | {est.name} | {est.verdict} | "
+                             f"{_failure_cells(case, est)} |")
+        lines.append("")
+    if failed:
+        lines += ["## Failed checks", ""] + [f"- `{c.id}`: {c.message}" for c in failed]
+    if results.inconclusive:
+        lines += ["", "## Inconclusive at this budget", ""] + \
+            [f"- `{c.id}`: {c.message}" for c in results.inconclusive]
+    return "\n".join(lines) + "\n"
+
+
+def write_summary(run_dir: str, results: Results) -> None:
+    """``run_dir/summary.md`` (:func:`summary`)."""
+    files.write_text(layout.summary_md(run_dir), summary(results))
+
+
+def _word(outcome: str) -> str:
+    """pass, **FAIL** or *inconclusive* for summary.md."""
+    return {"fail": "**FAIL**", "inconclusive": "*inconclusive*"}.get(outcome, outcome)
+
+
+def ranking_text(ranking: list[Placement]) -> str:
+    """"a > b = c > d": ">" where the intervals separate, "=" for a tie."""
+    out = ""
+    for i, p in enumerate(ranking):
+        if i:
+            tied = ranking[i - 1].estimator in p.tied_with
+            out += " = " if tied else " > "
+        out += p.estimator
+    return out
+
+
+def quadrature_summary(q: Quadrature) -> str:
+    """One line of what the quadrature stage measured of ``q.name``."""
+    parts = []
+    if q.equal_rays:
+        r = q.equal_rays
+        parts.append(f"relMSE {r.ratio:.3g}× {r.baseline}'s at equal rays "
+                     f"[{r.ratio_low:.3g}, {r.ratio_high:.3g}]")
+    if q.bias:
+        parts.append("rms bias " + ", ".join(f"{100 * b.rms_bias:.2f} % at N = {b.directions}"
+                                             for b in q.bias))
+    if q.calibration:
+        c = q.calibration
+        parts.append(f"posterior std {c.verdict} (RMSE/std median {c.median:.2f})")
+    return f"{q.name} (N = {q.directions}, {q.spp} spp): " + "; ".join(parts) + "."
+
+
+def speed_summary(speed: Speed) -> list[str]:
+    """The speed stage's lines of summary.md: budgets, ratios, ranking, notes."""
+    top = speed.budgets[-1]
+    lines = [f"Equal time at {speed.res}² ({', '.join(f'{b.seconds * 1e3:.0f}' for b in speed.budgets)}"
+             f" ms per render, K = {speed.renders}); at {top.seconds * 1e3:.0f} ms, most "
+             f"efficient first: {ranking_text(speed.ranking)}.", "",
+             "| estimator | spp | wall ms (median) | relMSE [95% CI] | efficiency ÷ path [95% CI] |",
+             "|---|---|---|---|---|"]
+    for name, run in top.estimators.items():
+        r = speed.efficiency_vs_path.get(name)
+        ratio = f"{r.ratio:.3g} [{r.ci.low:.3g}, {r.ci.high:.3g}]" if r else "—"
+        wall = sorted(run.wall_seconds)[len(run.wall_seconds) // 2] * 1e3
+        lines.append(f"| {name} | {run.spp} | {wall:.0f}{'' if run.on_budget else ' (off budget)'}"
+                     f" | {run.relmse:.3g} [{run.relmse_ci.low:.3g}, {run.relmse_ci.high:.3g}]"
+                     f" | {ratio} |")
+    return lines + [f"- {n}" for n in speed.notes]
+
+
+def _failure_cells(case: CaseResult, est) -> str:
+    if case.sweep is not None:
+        return (f"relMSE {', '.join(f'{r:.3g}' for r in est.relmse)} over {case.sweep.param} = "
+                f"{', '.join(str(v) for v in case.sweep.values)} | | ")
+    n = est.numbers
+    if n is None:
+        return " | | "
+    r, m = n.relmse, n.spp_to_match_path
+    return (f"{r.median:.3g} / {r.p99:.3g} / {r.max:.3g} | {100 * n.firefly_fraction:.3f} % | "
+            + (f"{m.spp:.3g} [{m.low:.3g}, {m.high:.3g}]" if m else "never (biased)"))
+
+
+def write_junit(path: str, results: Results, strict: bool = False) -> None:
+    """One test case per check: a fail is a <failure>, an inconclusive check a
+    <skipped> with its reason (a <failure> with ``strict``)."""
+    checks = results.checks
+    n = results.counts()
+    failures = n["fail"] + (n["inconclusive"] if strict else 0)
+    skipped = 0 if strict else n["inconclusive"]
+    out = ['<?xml version="1.0" encoding="UTF-8"?>',
+           f'<testsuite name="mcillum.validate.{results.profile}" tests="{len(checks)}" '
+           f'failures="{failures}" skipped="{skipped}" time="{results.wall_seconds:.3f}">']
+    for c in checks:
+        scene, _, rest = c.id.partition("/")
+        out.append(f'  <testcase classname={quoteattr("mcillum." + scene)} '
+                   f'name={quoteattr(rest)}>')
+        if c.outcome == "fail" or (strict and c.outcome == "inconclusive"):
+            out.append(f'    <failure message={quoteattr(c.message)}>'
+                       f'{escape(c.message)}</failure>')
+        elif c.outcome == "inconclusive":
+            out.append(f'    <skipped message={quoteattr("inconclusive: " + c.message)}/>')
+        out.append("  </testcase>")
+    out.append("</testsuite>")
+    files.write_text(path, "\n".join(out) + "\n")

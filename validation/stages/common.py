@@ -1,0 +1,120 @@
+"""The stages every run shares: the scene and its estimators, kept renders,
+the reference, and letting the scene go.
+
+A stage is ``stage(context) -> None``: it reads what earlier stages put on the
+:class:`~.context.Context` and adds what it finds. :mod:`~mcillum.validation.pipeline`
+lists which stages a scene comparison (scene.py, speed.py, quadrature.py), a
+failure case and a point of a parameter sweep (cases.py) run, in order. The
+stages gather evidence (renders, reference, numbers, tests); the verdicts
+are the checks' (:mod:`~mcillum.validation.checks`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+
+import numpy as np
+
+from mcillum.integrators import registry
+
+from ..plan import scenes, seeds
+from ..results import ReferenceSummary
+from ..run import jobs, references, renders, stacks
+
+REFERENCE = registry.REFERENCE
+
+
+# ----------------------------- Scene and estimators ----------------------------
+
+def load(ctx) -> None:
+    """The scene with the plan's resolution and $-parameters; its cache key."""
+    index = scenes.index()
+    if ctx.scene_name not in index:
+        raise ValueError(f"{ctx.id}: no scene '{ctx.scene_name}' in {scenes.SCENES_DIR}")
+    ctx.info = index[ctx.scene_name]
+    ctx.resolved = renders.resolve_defines(ctx.info.path, **{"res": ctx.res, **ctx.defines})
+    ctx.scene = renders.load_resolved(ctx.info.path, ctx.resolved)
+    ctx.params = {"max_depth": ctx.max_depth}
+    ctx.scene_key = references.cache_key(ctx.info.path, ctx.resolved, ctx.params,
+                                         ctx.run.variant)
+    ctx.scene_spec = jobs.SceneSpec(os.path.abspath(ctx.info.path),
+                                    tuple(sorted(ctx.resolved.items())), ctx.scene_key)
+
+
+def choose_estimators(ctx) -> None:
+    """The estimators asked for whose registry facts say they reach every
+    kind of content the scene header declares (at the plan's max_depth)."""
+    ctx.integrators = {n: jobs.make(n, ctx.params) for n in ctx.estimators
+                       if registry.facts(n).renders(ctx.info.contains, ctx.max_depth)}
+
+
+def release(ctx) -> None:
+    """Drop the loaded scene when nothing more is rendered from it: every
+    live scene's shapes, BSDFs and emitters stay in Dr.Jit's instance
+    registry, which every virtual call of a kernel dispatches over, and slow
+    every later render in this process, and so the timings of the speed
+    stage and of a sweep's points."""
+    ctx.scene = None
+
+
+# ----------------------------------- Renders ------------------------------------
+
+def compile_kernels(ctx) -> None:
+    """Each integrator's first render (its kernel compiles or loads from
+    Dr.Jit's cache), timed apart; once per context, and only when something
+    is rendered."""
+    if ctx.compile_seconds:
+        return
+    seed = seeds.stream("compile").seed()
+    batch = [ctx.job(integ, 1, seed) for integ in ctx.integrators.values()]
+    ctx.compile_seconds = {n: out.seconds for n, out in
+                           zip(ctx.integrators, ctx.render(batch, None, timed=True))}
+
+
+def kept_file(ctx, what: str) -> str:
+    """A file name for ``what`` that differs between contexts sharing an id
+    (the points of a sweep, a case's sunless twin)."""
+    tag = json.dumps(ctx.defines, sort_keys=True, default=str)
+    return f"{what}-{hashlib.sha256(tag.encode()).hexdigest()[:8]}"
+
+
+def fresh(ctx, name: str, spp: int | None = None, k: int | None = None) -> np.ndarray:
+    """K new renders of one estimator at the case's spp (or ``spp``, ``k``:
+    a scene's top rung), from the context's replication stream; kept."""
+    spp, k = spp or ctx.plan.spp, k or ctx.plan.seeds
+    stream = ctx.streams["replication"]
+    return stacks.kept(ctx, kept_file(ctx, f"{stream}-{name}"), stream,
+                       {name: ctx.integrators[name]}, {name: spp}, k,
+                       seeds.stream(stream).take(k), label=ctx.label)[name].images
+
+
+# ---------------------------------- Reference -----------------------------------
+
+def build_reference(ctx) -> None:
+    """`path` until its standard error is a fraction of the smallest error it is
+    compared against: the least noisy render stack of a scene comparison, or
+    `path`'s own in a failure case (where the other stacks' tails would set no
+    useful target)."""
+    found = [s.images for by_name in ctx.stacks.values() for n, s in by_name.items()
+             if not ctx.is_case or n == REFERENCE]
+    target = references.target_for(found, ctx.run.profile.reference_fraction)
+    ctx.reference = references.ensure(ctx, target)
+
+
+def reference_summary(ref) -> ReferenceSummary:
+    """What the results record of a reference (run.references.Reference)."""
+    return ReferenceSummary(integrator=REFERENCE, spp=ref.spp, passes=ref.passes,
+                            spp_per_pass=ref.spp_per_pass, seconds=ref.seconds,
+                            cached_passes=ref.cached_passes,
+                            rendered_passes=ref.meta.get("rendered_passes", 0),
+                            target_variance=ref.meta.get("target_variance", 0.0),
+                            achieved_variance=float(ref.variance_of_mean.mean()),
+                            capped=ref.capped, key=ref.key)
+
+
+def scene_summary(ctx) -> str:
+    """The scene header's summary with the $-parameters it was rendered with
+    (a map by the name it was given, not the checked file it became)."""
+    return scenes.expand(ctx.info.path, ctx.info.summary, ctx.defines)

@@ -1,0 +1,169 @@
+"""The quadrature stage: what an estimator of N directions per shading point
+(fibonacci_hemisphere, bayesian_hemisphere; registry facts ``depths``) is
+measured on beyond the spp ladder, at the ladder's top rung and resolution.
+
+* **Equal rays.** K renders of N directions × spp camera samples against K
+  renders of ``cosine_hemisphere`` at N·spp spp: the ratio of their relMSE
+  (each less the reference's own relative variance), with a 95 % interval
+  from the spread of the per-render errors (delta method on the log).
+* **Bias against N** (estimators biased by design, facts ``unbiased``
+  False): at N = 16, the default and 256, the bias per pixel b = m − r of
+  the mean m of K renders (of the channel mean: the channels share their
+  directions), summarised as the noise-corrected rms over pixels
+  √(mean(b² − v/K − v_ref)) relative to the rms of the reference, ± its
+  standard error. It must shrink from N = 16 to 256 (a check).
+* **Calibration of the posterior standard deviation** (estimators that
+  write the ``posterior_std`` AOV): per pixel, the RMSE of the K renders
+  against the reference over the predicted std (rms over renders, the
+  reference's variance added). Median and quartiles over pixels; **calibrated**
+  if the median lies within :data:`~mcillum.validation.checks.evidence.CALIBRATED`
+  (errors within 1.5× of what
+  it predicts), **over-confident** above (errors larger than predicted),
+  **under-confident** below.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from mcillum.integrators import registry
+
+from ..checks import evidence
+from ..plan import seeds
+from ..results import BiasAtN, Calibration, EqualRays, Quadrature
+from ..run import jobs, stacks
+from ..stats import metrics
+
+#: The N of the bias-against-N measurement (the default N is added).
+BIAS_DIRECTIONS = (16, 256)
+#: Errors below this share of the reference count as exact: float32 films
+#: summing 256 samples per pixel err by ~1e-5 (the full profile's furnace
+#: read as infinitely over-confident at 1e-5).
+EXACT = 1e-4
+#: The Monte Carlo estimator the sets are compared with at equal rays.
+BASELINE = "cosine_hemisphere"
+
+
+def is_point_set(name: str) -> bool:
+    return registry.facts(name).depths is not None and name in registry.names()
+
+
+def planned_renders(names, k: int) -> int:
+    """Renders this stage makes for ``names`` at K renders each (for the
+    progress bar; estimators the scene refuses are counted too)."""
+    sets = [n for n in names if is_point_set(n)]
+    return k * sum(2 + (0 if registry.facts(n).unbiased else len(BIAS_DIRECTIONS))
+                   for n in sets)
+
+
+def measure(ctx) -> None:
+    """Per point-set estimator of the scene: ``ctx.quadrature[name]``."""
+    ctx.quadrature = {}
+    names = [n for n in ctx.integrators if is_point_set(n)]
+    if not names:
+        return
+    spp, k = ctx.plan.ladder[-1], ctx.plan.renders
+    ref = ctx.reference
+    for i, name in enumerate(names):
+        n = ctx.integrators[name].made.directions
+        block = 2 * i
+        # (the equal-ray pair's median seconds are reported: timed, executors.py)
+        own = _renders(ctx, name, {}, spp, k, block, timed=True)
+        baseline = (_renders(ctx, BASELINE, {}, spp * n, k, block + 1, timed=True)
+                    if BASELINE in registry.names() else None)
+        rays = _equal_rays(own, baseline, ref, n, spp) if baseline is not None else None
+        bias, calibration = None, None
+        if not registry.facts(name).unbiased:
+            bias = [_bias(own, ref, n)]
+            for b, m in enumerate(BIAS_DIRECTIONS):
+                if m != n:
+                    other = _renders(ctx, name, {"directions": m}, spp, k, 2 * len(names) + b)
+                    bias.append(_bias(other, ref, m))
+            bias.sort(key=lambda row: row.directions)
+        if "posterior_std" in own.aovs:
+            calibration = _calibration(own, ref)
+        ctx.quadrature[name] = Quadrature(name=name, directions=n, spp=spp, renders=k,
+                                          equal_rays=rays, bias=bias, calibration=calibration)
+
+
+def _renders(ctx, name, params, spp, k, block, timed=False) -> stacks.Stack:
+    """K renders (kept: a re-run loads them) from block ``block`` of the
+    quadrature seed stream."""
+    integrator = jobs.make(name, {**ctx.params, **params})
+    tag = "-".join(f"{key}{value}" for key, value in sorted(params.items()))
+    return stacks.kept(ctx, f"quadrature{block}-{name}", f"quadrature {tag}",
+                       {name: integrator}, {name: spp}, k,
+                       seeds.stream("quadrature", block).take(k), label=ctx.label,
+                       timed=timed)[name]
+
+
+def _relmse_less_reference(stack, ref) -> np.ndarray:
+    """Each render's relMSE less the part the reference's own noise adds."""
+    noise = metrics.reference_relmse(ref.mean, ref.variance_of_mean)
+    return metrics.per_render_relmse(stack.images, ref.mean) - noise
+
+
+def _equal_rays(own, baseline, ref, n, spp) -> EqualRays:
+    a, b = _relmse_less_reference(own, ref), _relmse_less_reference(baseline, ref)
+    ratio = float(a.mean() / b.mean()) if b.mean() > 0 else float("nan")
+    # delta method on log(ā / b̄): var ≈ s_a²/(K ā²) + s_b²/(K b̄²)
+    k = len(a)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = math.sqrt(a.var(ddof=1) / (k * a.mean() ** 2) + b.var(ddof=1) / (k * b.mean() ** 2))
+    low, high = (ratio * math.exp(-1.96 * s), ratio * math.exp(1.96 * s)) \
+        if np.isfinite(s) and ratio > 0 else (float("nan"), float("nan"))
+    seconds, seconds_b = float(np.median(own.seconds)), float(np.median(baseline.seconds))
+    return EqualRays(baseline=BASELINE, baseline_spp=n * spp, relmse=float(a.mean()),
+                     baseline_relmse=float(b.mean()), ratio=ratio, ratio_low=low, ratio_high=high,
+                     seconds=seconds, baseline_seconds=seconds_b)
+
+
+def _bias(stack, ref, n) -> BiasAtN:
+    # per pixel, the mean over channels: R, G and B come from the same
+    # directions, so they are not independent evidence
+    x = stack.images[..., :3].astype(np.float64).mean(axis=-1)
+    k = len(x)
+    m, v = x.mean(axis=0), x.var(axis=0, ddof=1) / k
+    r = np.asarray(ref.mean, np.float64)[..., :3].mean(axis=-1)
+    # (the mean of the channel variances: at least the channel mean's, so conservative)
+    v_ref = np.asarray(ref.variance_of_mean, np.float64)[..., :3].mean(axis=-1)
+    b = m - r
+    noise = v + v_ref
+    per_pixel = b ** 2 - noise                       # unbiased for the squared bias
+    squared = float(per_pixel.mean())
+    # se of that mean: Var(b̂²) ≈ 2 σ⁴ + 4 b² σ² per pixel-channel, σ² = noise
+    se_squared = float(np.sqrt(np.sum(2 * noise ** 2 + 4 * np.maximum(per_pixel, 0) * noise))
+                       / per_pixel.size)
+    scale = float(np.sqrt(np.mean(r ** 2)))
+    rms = math.sqrt(max(squared, 0.0))
+    # se of √(B) by the delta method, 1/(2√B); at B ≈ 0 the bound √se
+    se = se_squared / (2 * rms) if rms > 0 else math.sqrt(se_squared)
+    signed = float((b.mean()) / np.mean(r)) if np.mean(r) > 0 else float("nan")
+    return BiasAtN(directions=n, rms_bias=rms / scale, rms_bias_se=se / scale, mean_bias=signed)
+
+
+def _calibration(stack, ref) -> Calibration:
+    x = stack.images[..., :3].astype(np.float64)
+    std = stack.aovs["posterior_std"][..., :3].astype(np.float64)
+    r = np.asarray(ref.mean, np.float64)[..., :3]
+    v_ref = np.asarray(ref.variance_of_mean, np.float64)[..., :3]
+    # the reference's own error is in every measured error: it joins the
+    # prediction (a per-pixel subtraction would leave it where it is larger
+    # than its variance, and call an exact quadrature over-confident)
+    measured = np.sqrt(((x - r) ** 2).mean(axis=0))
+    predicted = np.sqrt((std ** 2).mean(axis=0) + v_ref)
+    # pixels where both are at float precision (exact) say nothing; a 0
+    # prediction with an error is infinitely over-confident
+    floor = EXACT * np.abs(r)
+    keep = (predicted > floor) | (measured > floor)
+    with np.errstate(divide="ignore"):
+        ratio = np.where(predicted > 0, measured / np.where(predicted > 0, predicted, 1), np.inf)
+    ratio = ratio[keep]
+    if ratio.size == 0:
+        return Calibration(median=float("nan"), q25=float("nan"), q75=float("nan"), pixels=0,
+                           verdict="exact (no error and none predicted)")
+    q25, median, q75 = (float(q) for q in np.quantile(ratio, [0.25, 0.5, 0.75]))
+    return Calibration(median=median, q25=q25, q75=q75, pixels=int(ratio.size),
+                       verdict=evidence.calibration_verdict(median))

@@ -1,0 +1,186 @@
+"""The stages of a scene comparison: K renders per estimator on every rung of
+an spp ladder, then what they measure against the reference.
+
+* Metrics per rung (stats/metrics.py): relMSE, MSE, MAPE, bias, variance,
+  efficiency 1 / (relMSE · seconds) per render.
+* Unbiasedness: the batch-means test of all rungs pooled against the
+  reference (stats/statistics.py) and the fireflies of the estimator's
+  renders (stats/tails.py); where the rules of evidence count a rejection,
+  the same test on K fresh renders at the top rung (:func:`replicate`).
+* Convergence: least-squares fit of log relMSE against log spp over the
+  ladder (relMSE averaged over the K renders at each spp, minus the part the
+  reference's own noise adds, mean var_ref/(r² + ε)); the slope's (1 − α)
+  interval is Student-t with n − 2 degrees of freedom. Monte Carlo expects
+  −1. An estimator with zero variance at every rung is exact and converges
+  trivially (the cosine estimator in a furnace).
+
+The verdicts are checks/scene.py's. Accuracy at equal time is the
+speed-and-images stage's (speed.py): at these small sizes a render's time
+is mostly its fixed cost.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from mcillum import files
+
+from ..checks import evidence
+from ..plan import seeds
+from ..results import Convergence, EstimatorResult, RunStats, SceneResult, Unbiasedness
+from ..run import stacks
+from ..stats import metrics, statistics, tails
+from .common import REFERENCE, compile_kernels, fresh, reference_summary, scene_summary
+
+ALPHA = statistics.ALPHA
+
+
+def render_ladder(ctx) -> None:
+    """K renders per estimator on every rung of the plan's spp ladder (kept)."""
+    ctx.stacks = stacks.ladder(ctx, compile_kernels)
+
+
+# ---------------------------------- Measure -------------------------------------
+
+def measure(ctx) -> None:
+    """Per estimator: metrics per rung, the pooled unbiasedness test with the
+    fireflies of its renders (``ctx.evidence``; path's fireflies stand for the
+    reference's tail) and the convergence fit."""
+    ladder, ref = ctx.plan.ladder, ctx.reference
+    rungs = {name: {spp: ctx.stacks[spp][name].images for spp in ladder}
+             for name in ctx.integrators}
+    tail = {name: tails.tail_events(s.values(), ref.mean, s.keys())
+            for name, s in rungs.items()}
+    path_events = tail[REFERENCE][0] if REFERENCE in tail else None   # the reference's tail
+    for name in ctx.integrators:
+        runs = [run_stats(ctx.stacks[spp][name], ref) for spp in ladder]
+        found = ctx.evidence[name] = bias_evidence(rungs[name], ref, runs, tail[name],
+                                                   path_events)
+        ctx.measured[name] = EstimatorResult(
+            name=name, params=ctx.params,
+            compile_seconds=ctx.compile_seconds.get(name, float("nan")), runs=runs,
+            unbiasedness=unbiasedness_record(found, max(ladder)),
+            convergence=convergence_fit(runs))
+
+
+def run_stats(stack, reference) -> RunStats:
+    """Metrics of K renders of one estimator at one spp (see metrics.py)."""
+    x = stack.images[..., :3].astype(np.float64)
+    r = reference.mean[..., :3]
+    per = metrics.per_render_relmse(x, r)
+    rel = float(np.mean(per))
+    b, se = metrics.bias(x, r, reference.image_mean_se)
+    med = float(np.median(stack.seconds))
+    pixels = x.shape[1] * x.shape[2]
+    return RunStats(
+        spp=stack.spp, renders=x.shape[0], relmse=rel, relmse_per_render=per.tolist(),
+        mse=float(np.mean([metrics.mse(i, r) for i in x])),
+        mape=float(np.mean([metrics.mape(i, r) for i in x])), bias=b, bias_se=se,
+        variance_per_render=metrics.variance_per_render(x),
+        nonfinite_fraction=metrics.nonfinite_fraction(stack.images), median_seconds=med,
+        seconds=[float(s) for s in stack.seconds], samples_per_second=pixels * stack.spp / med,
+        efficiency=1.0 / (rel * med) if rel > 0 else float("inf"),
+        reference_relmse=metrics.reference_relmse(r, reference.variance_of_mean),
+        firefly_fraction=tails.firefly_fraction(np.nan_to_num(x), r))
+
+
+def bias_evidence(rungs: dict, reference, runs: list[RunStats], tail,
+                  reference_events: np.ndarray | None) -> evidence.Evidence:
+    """The batch-means test of all rungs ``rungs`` ({spp: (K, H, W, C)}) pooled,
+    each weighted by its samples, against the reference, with the fireflies
+    ``tail`` (tails.tail_events of the rungs, weighted by spp) and path's
+    ``reference_events``; not tested (comparison None) where a render holds
+    NaN/Inf."""
+    events, n, carried = tail
+    samples = int(sum(spp * x.shape[0] for spp, x in rungs.items()))
+    comparison = None
+    if all(r.nonfinite_fraction == 0 for r in runs):
+        pooled = statistics.Moments.pooled({spp: x[..., :3] for spp, x in rungs.items()})
+        comparison = statistics.compare(pooled, reference.moments(), ALPHA)
+    return evidence.Evidence(comparison=comparison, events=events, renders=n, samples=samples,
+                             carried=carried, reference_events=reference_events)
+
+
+def unbiasedness_record(found: evidence.Evidence, top: int) -> Unbiasedness:
+    """The numbers of the pooled test at top spp ``top``; its outcome is
+    decided by checks/scene.py."""
+    c = found.comparison
+    if c is None:
+        return Unbiasedness(spp=top, passed=False, pass_fraction=0.0, min_p=0.0, alpha=ALPHA,
+                            alpha_pixel=0.0, pooled_p=[], summary="not tested: non-finite pixels")
+    return Unbiasedness(spp=top, passed=c.passed, pass_fraction=c.pass_fraction, min_p=c.min_p,
+                        alpha=ALPHA, alpha_pixel=c.alpha_pixel,
+                        pooled_p=[float(p) for p in c.pooled_p], summary=c.summary(),
+                        samples_per_pixel=found.samples)
+
+
+def convergence_fit(runs: list[RunStats], alpha: float = 0.05) -> Convergence:
+    """Slope of log (relMSE − the reference's share) against log spp, with its
+    (1 − α) interval; its outcome is decided by checks/scene.py. An estimator
+    with zero variance at every spp is exact. With fewer than 3 usable rungs
+    the interval is unbounded and nothing is claimed."""
+    if all(r.variance_per_render <= 1e-12 for r in runs):
+        return Convergence(slope=float("nan"), low=float("nan"), high=float("nan"), exact=True,
+                           consistent_with_mc=True, passed=True)
+    ok = [(r.spp, r.relmse - r.reference_relmse) for r in runs
+          if r.relmse - r.reference_relmse > 0]
+    if len(ok) < 3:
+        return Convergence(slope=float("nan"), low=float("-inf"), high=float("inf"),
+                           exact=False, consistent_with_mc=False, passed=False)
+    slope, _, (lo, hi) = statistics.loglog_fit(*zip(*ok), alpha)
+    return Convergence(slope=float(slope), low=float(lo), high=float(hi), exact=False,
+                       consistent_with_mc=bool(lo <= evidence.EXPECTED_SLOPE <= hi),
+                       passed=bool(hi < 0))
+
+
+def replicate(ctx) -> None:
+    """A rejection that counts by the rules of evidence is tested again on K
+    fresh renders at the top rung (statistics.replicated_rejection): if it
+    does not come back, the check reads inconclusive (an α-chance alarm, or a
+    bias too small for K)."""
+    top, k, ref = ctx.plan.ladder[-1], ctx.plan.renders, ctx.reference
+    for name, found in ctx.evidence.items():
+        if found.comparison is None:
+            continue
+        first = found.first_reading()
+        if first.outcome != "fail":
+            continue
+        y = fresh(ctx, name, top, k)[..., :3]
+        replicated, pixels, _, excused = statistics.replicated_rejection(
+            found.comparison, first, y, ref.moments(), ALPHA,
+            evidence.decider(ref.mean, top, found.reference_events))
+        found.replication = evidence.Replication(replicated=replicated, pixels=pixels,
+                                                 excused=excused, renders=y.shape[0], spp=top)
+
+
+# ---------------------------------- Images --------------------------------------
+
+def save_images(ctx) -> None:
+    """images/<scene>/: the reference and its variance; per estimator one
+    render and the K-render mean at the top spp."""
+    d, ref = ctx.images_dir, ctx.reference
+    files.write_exr(f"{d}/reference.exr", ref.mean.astype(np.float32),
+                    {"spp": ref.spp, "passes": ref.passes})
+    files.write_exr(f"{d}/reference_variance.exr", ref.variance_of_mean.astype(np.float32),
+                    {"passes": ref.passes})
+    rung = len(ctx.plan.ladder) - 1
+    top = ctx.plan.ladder[rung]
+    for name in ctx.measured:
+        images = ctx.stacks[top][name].images
+        files.write_exr(f"{d}/{name}_spp{top}.exr", images[0],
+                        {"integrator": name, "spp": top,
+                         "seed": seeds.stream("ladder", rung).seed(0)})
+        files.write_exr(f"{d}/{name}_spp{top}_mean.exr", images.mean(axis=0),
+                        {"integrator": name, "spp": top, "renders": len(images)})
+
+
+def scene_result(ctx) -> SceneResult:
+    """The scene comparison's record."""
+    return SceneResult(
+        name=ctx.id, path=os.path.relpath(ctx.info.path, os.getcwd()),
+        summary=scene_summary(ctx), res=ctx.res, max_depth=ctx.max_depth,
+        ladder=list(ctx.plan.ladder), renders=ctx.plan.renders,
+        reference=reference_summary(ctx.reference), estimators=list(ctx.measured.values()),
+        speed=ctx.speed, quadrature=list(ctx.quadrature.values()) or None)

@@ -1,0 +1,293 @@
+"""The speed-and-images stage: accuracy against time at the display resolution.
+
+The small-image statistics (scene.py) decide whether an estimator is right;
+this stage measures what it costs and shows what it looks like, at the
+resolution of the scene's :class:`~mcillum.validation.plan.profiles.Display`,
+in a sub-context of the scene's (``ctx.display``). Its stages, in order:
+
+    display            the scene at the display resolution, same estimators
+    time_costs         warm renders, estimators interleaved: a pilot at 1 and 16
+                       spp; then ``repeats`` rounds at the spp each estimator
+                       needs for ¼ of and the whole smallest budget → per estimator
+                       t = a + b·spp with bootstrap intervals (stats/costs.py)
+    render_budgets     budgets T = `path`'s model at ``path_spp`` (scaled by one
+                       factor until every a ≤ 10 % of the smallest T);
+                       K renders per estimator and budget at
+                       spp = max(1, round((T − a)/b)), interleaved, each timed
+    display_reference  `path` until its standard error is at most the profile's
+                       ``display_reference_fraction`` (25 %) of `path`'s own RMSE
+                       at the largest budget (run/references.py: adaptive,
+                       cached by content): about 16× `path`'s spp there. Its
+                       share of every relMSE is recorded (``reference_relmse``:
+                       6 % of path's); an estimator whose relMSE is within 2×
+                       of it is flagged in the notes (its efficiency is a lower
+                       bound: in the furnace the cosine estimator is exact)
+    measure_speed      relMSE with its interval per budget, wall times against
+                       the budget, efficiency against `path`, a ranking with
+                       ties, FLIP
+    save_display       images/<scene>/display/: the reference; per estimator
+                       its first render at the largest budget with its FLIP map
+
+Timings and renders are kept in the run directory (``renders/<scene>/speed.npz``,
+results/layout.py) under a key
+(scene content, estimators, settings): a re-run into a finished directory
+renders nothing; the timings it reports are the first run's.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+
+import numpy as np
+
+from mcillum import files
+from mcillum.integrators import registry
+
+from ..plan import seeds
+from ..results import Budget, BudgetRun, Ratio, Speed, layout
+from ..run import references, stacks, timing
+from ..run.stacks import Stack
+from ..stats import costs, metrics
+from . import common
+
+REFERENCE = registry.REFERENCE
+PILOT_SPP = (1, 16)
+PILOT_ROUNDS = 3
+MAX_SCALE = 64             # budgets grow at most this much to outweigh the fixed cost
+ON_BUDGET = 0.10           # a median wall time within ±10 % of its budget
+CACHE_VERSION = 1
+
+
+# ----------------------------- The display scene --------------------------------
+
+def display(ctx) -> None:
+    """The scene at the display resolution with the estimators the scene
+    comparison chose; its cached timings and renders if a run left them."""
+    d = ctx.plan.display
+    sub = ctx.derive(list(ctx.integrators), label=f"{ctx.id} {d.res}²",
+                     plan=dataclasses.replace(ctx.plan, res=d.res))
+    common.load(sub)
+    sub.integrators = dict(ctx.integrators)           # (integrators hold no scene)
+    ctx.display = sub
+    _load_cache(ctx)
+
+
+def time_costs(ctx) -> None:
+    """A cost model t = a + b·spp per estimator (see the module doc)."""
+    ctx.run.executor.timed_on()                         # (forget earlier stages')
+    if ctx.timings is not None:                         # from the cache
+        ctx.costs = {n: costs.fit_cost(t) for n, t in ctx.timings.items()}
+        return
+    sub, d = ctx.display, ctx.plan.display
+    stream = seeds.stream("speed_timing")
+    # pilot: the fastest of 3 renders at 1 and 16 spp (a ≈ t(1) − b)
+    pilot = {n: costs.fit_cost({s: [min(t)] * 2 for s, t in spps.items()})
+             for n, spps in timing.timed(sub.run.executor, _job(sub),
+                                         dict.fromkeys(sub.integrators, list(PILOT_SPP)),
+                                         PILOT_ROUNDS, stream).items()}
+    path_spp = budget_spp(pilot, d.path_spp)
+    smallest = costs.seconds_at(pilot[REFERENCE], path_spp[0])
+    # time each estimator at the spp it needs for a quarter of and the whole
+    # smallest budget: small spp pin a down, and the line is extrapolated to
+    # the larger budgets (a budget's renders that miss it are noted)
+    plan = {}
+    for n, model in pilot.items():
+        lo = costs.spp_for(model, smallest / 4)
+        plan[n] = [lo, max(costs.spp_for(model, smallest), 2 * lo)]
+    ctx.timings = timing.timed(sub.run.executor, _job(sub), plan, d.repeats, stream)
+    ctx.costs = {n: costs.fit_cost(t) for n, t in ctx.timings.items()}
+    ctx.budget_path_spp = path_spp
+
+
+def budget_spp(models: dict, path_spp) -> list[int]:
+    """`path`'s spp at each budget: the profile's ``path_spp`` scaled by one
+    factor (1 to MAX_SCALE) so that every estimator's fixed cost is at most
+    10 % of the smallest budget, its ratios kept."""
+    worst = max(max(m.fixed_s, 0.0) for m in models.values())
+    path = models[REFERENCE]
+    needed = (worst / costs.MAX_OVERHEAD - path.fixed_s) / max(path.per_spp_s, 1e-12)
+    scale = min(max(1.0, needed / min(path_spp)), MAX_SCALE)
+    first = int(np.ceil(scale * min(path_spp)))
+    return [int(round(first * s / min(path_spp))) for s in path_spp]
+
+
+# --------------------------------- Budgets ---------------------------------------
+
+def render_budgets(ctx) -> None:
+    """K timed renders per estimator at every budget (or the cached ones)."""
+    sub, d = ctx.display, ctx.plan.display
+    path = ctx.costs[REFERENCE]
+    ctx.budgets = [(costs.seconds_at(path, s), s) for s in ctx.budget_path_spp]
+    _note_overhead(ctx)
+    if ctx.budget_stacks:                                # from the cache
+        return
+    spps = [{n: path_spp if n == REFERENCE else costs.spp_for(m, budget)
+             for n, m in ctx.costs.items()} for budget, path_spp in ctx.budgets]
+    # (untimed: the first render at a larger wavefront allocates memory, timing.py)
+    timing.warm(sub.run.executor, _job(sub),
+                {n: max(s[n] for s in spps) for n in spps[0]},
+                seeds.stream("speed_timing").seed(0))
+    for j, ((budget, _), spp) in enumerate(zip(ctx.budgets, spps)):
+        ctx.budget_stacks.append(stacks.interleaved(
+            sub, sub.integrators, spp, d.renders, seeds.stream("speed", j).take(d.renders),
+            f"{sub.label} {budget * 1e3:.0f} ms", timed=True))
+    ctx.timed_on = sub.run.executor.timed_on()
+    _save_cache(ctx)
+
+
+def _job(sub):
+    """``job(name, spp, seed)`` of the display scene (timing.py)."""
+    return lambda name, spp, seed: sub.job(sub.integrators[name], spp, seed)
+
+
+def _note_overhead(ctx) -> None:
+    smallest = ctx.budgets[0][0]
+    for n, m in ctx.costs.items():
+        share = costs.overhead_share(m, smallest)
+        if share > costs.MAX_OVERHEAD:
+            ctx.notes.append(
+                f"{n}: its fixed cost {m.fixed_s * 1e3:.1f} ms is {100 * share:.0f} % of the "
+                f"smallest budget ({smallest * 1e3:.1f} ms), over the 10 % the stage aims "
+                "for: its times at that budget are partly launch overhead")
+
+
+# -------------------------------- Reference --------------------------------------
+
+def display_reference(ctx) -> None:
+    """`path` at the display resolution, precise to the profile's fraction of
+    the smallest RMSE at the largest budget."""
+    sub = ctx.display
+    found = [ctx.budget_stacks[-1][REFERENCE].images]
+    sub.reference = references.ensure(
+        sub, references.target_for(found, ctx.run.profile.display_reference_fraction))
+
+
+# --------------------------------- Numbers ---------------------------------------
+
+def measure_speed(ctx) -> None:
+    sub, d = ctx.display, ctx.plan.display
+    ref = sub.reference
+    r = ref.mean[..., :3]
+    ref_share = metrics.reference_relmse(r, ref.variance_of_mean)
+    budgets = []
+    for (budget, path_spp), by_name in zip(ctx.budgets, ctx.budget_stacks):
+        runs = {n: _budget_run(ctx, n, u, budget, r) for n, u in by_name.items()}
+        budgets.append(Budget(seconds=budget, path_spp=path_spp, estimators=runs,
+                              reference_relmse=ref_share))
+    top = budgets[-1].estimators
+    for n, run in top.items():
+        if run.relmse < 2 * ref_share:
+            ctx.notes.append(f"{n}: its relMSE {run.relmse:.3g} is within 2× of the "
+                             f"reference's own share {ref_share:.3g}: the reference limits "
+                             "it, and its efficiency is a lower bound")
+    base = top[REFERENCE]
+    ratios = {n: costs.ratio_interval(run.relmse_per_render, run.wall_seconds,
+                                      base.relmse_per_render, base.wall_seconds)
+              for n, run in top.items()}
+    ranking = costs.ranking({n: costs.efficiency_interval(run.relmse_per_render,
+                                                          run.wall_seconds)
+                             for n, run in top.items()})
+    flips = {n: metrics.flip(u.images[0], r) for n, u in ctx.budget_stacks[-1].items()}
+    ctx.flip_maps = {n: f[0] for n, f in flips.items() if f is not None}
+    ctx.speed = Speed(
+        res=d.res, renders=d.renders, cost_model=dict(ctx.costs), budgets=budgets,
+        efficiency_vs_path={n: Ratio(ratio=r, ci=ci) for n, (r, ci) in ratios.items()},
+        ranking=ranking, reference=common.reference_summary(ref),
+        mean_flip={n: (f[1] if f is not None else float("nan")) for n, f in flips.items()},
+        notes=list(ctx.notes), timed_on=list(ctx.timed_on))
+
+
+def _budget_run(ctx, name: str, stack: Stack, budget: float, r: np.ndarray) -> BudgetRun:
+    per = metrics.per_render_relmse(stack.images, r).tolist()
+    mean, ci = costs.relmse_interval(per)
+    median = float(np.median(stack.seconds))
+    on = abs(median - budget) <= ON_BUDGET * budget
+    note = None
+    if not on:
+        one = costs.seconds_at(ctx.costs[name], 1)
+        if stack.spp == 1 and one > budget:
+            note = (f"1 spp already takes {one * 1e3:.1f} ms (cost model), more than the "
+                    f"{budget * 1e3:.1f} ms budget")
+        else:
+            note = (f"median {median * 1e3:.1f} ms at {stack.spp} spp against a "
+                    f"{budget * 1e3:.1f} ms budget ({100 * (median / budget - 1):+.0f} %): "
+                    "the machine's speed drifted between the timing and these renders, "
+                    "or t = a + b·spp does not hold at this spp")
+        ctx.notes.append(f"{name} at {budget * 1e3:.1f} ms: {note}")
+    return BudgetRun(spp=stack.spp, wall_seconds=[float(s) for s in stack.seconds], relmse=mean,
+                     relmse_ci=ci, relmse_per_render=per, on_budget=on, note=note)
+
+
+# --------------------------------- Images ----------------------------------------
+
+def save_display(ctx) -> None:
+    """images/<scene>/display/: the reference; each estimator's first render at
+    the largest budget with its FLIP map as layer ``flip``."""
+    sub = ctx.display
+    out = layout.made(layout.display_dir(ctx.run.out_dir, ctx.id))
+    ref = sub.reference
+    files.write_exr(f"{out}/reference.exr", ref.mean[..., :3].astype(np.float32),
+                    {"spp": ref.spp, "passes": ref.passes})
+    budget = ctx.budgets[-1][0]
+    for n, stack in ctx.budget_stacks[-1].items():
+        layers = {"flip": ctx.flip_maps[n][..., None]} if n in ctx.flip_maps else None
+        files.write_exr(f"{out}/{n}.exr", stack.images[0].astype(np.float32),
+                        {"integrator": n, "spp": stack.spp,
+                         "seed": seeds.stream("speed", len(ctx.budgets) - 1).seed(0),
+                         "render_seconds": float(stack.seconds[0]),
+                         "budget_seconds": budget}, layers)
+
+
+def release_display(ctx) -> None:
+    """The display scene is rendered no more (common.release)."""
+    common.release(ctx.display)
+
+
+# ---------------------------------- Cache ----------------------------------------
+
+def _cache_file(ctx) -> tuple[str, str]:
+    sub, d = ctx.display, ctx.plan.display
+    key = hashlib.sha256(json.dumps(
+        [sub.scene_key, list(sub.integrators), dataclasses.asdict(d), PILOT_SPP,
+         PILOT_ROUNDS, MAX_SCALE, CACHE_VERSION]).encode()).hexdigest()[:24]
+    return layout.kept_renders(ctx.run.out_dir, ctx.id, "speed"), key
+
+
+def _load_cache(ctx) -> None:
+    path, key = _cache_file(ctx)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if str(z["key"]) != key:
+                return
+            meta = json.loads(str(z["meta"]))
+            found = [{n: Stack(n, spp, z[f"images_{j}_{i}"], z[f"seconds_{j}_{i}"].tolist())
+                      for i, (n, spp) in enumerate(budget)}
+                     for j, budget in enumerate(meta["spp"])]
+    except Exception:  # absent, partial or from another version: time and render anew
+        return
+    ctx.timings = {n: {int(s): t for s, t in v.items()} for n, v in meta["timings"].items()}
+    ctx.budget_path_spp = [int(x) for x in meta["path_spp"]]
+    ctx.budget_stacks = found
+    ctx.timed_on = list(meta.get("timed_on", []))
+    ctx.run.step(f"{ctx.id} speed stage: loaded",
+                 len(found) * ctx.plan.display.renders * len(ctx.display.integrators))
+
+
+def _save_cache(ctx) -> None:
+    path, key = _cache_file(ctx)
+    arrays = {"key": key, "meta": json.dumps({
+        "timings": {n: {str(s): t for s, t in v.items()} for n, v in ctx.timings.items()},
+        "path_spp": ctx.budget_path_spp,
+        "timed_on": ctx.timed_on,
+        "spp": [[[n, u.spp] for n, u in by_name.items()] for by_name in ctx.budget_stacks]})}
+    for j, by_name in enumerate(ctx.budget_stacks):
+        for i, u in enumerate(by_name.values()):
+            arrays[f"images_{j}_{i}"] = u.images
+            arrays[f"seconds_{j}_{i}"] = np.asarray(u.seconds)
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    with files.atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez_compressed(f, **arrays)

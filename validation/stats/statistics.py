@@ -1,0 +1,316 @@
+"""Is an estimator unbiased? Batch-means tests against a reference.
+
+Both sides are given as independent renders (different seeds): K images of the
+estimator, M of the reference. Each render is itself a mean over spp samples,
+so by the central limit theorem it is close to normal even where single
+samples are heavy-tailed; the spread over renders measures each side's *own*
+variance. (Mitsuba's render test uses the reference integrator's variance for
+both sides, which wrongly rejects correct hemisphere estimators.)
+
+Per pixel and colour channel, Welch's t statistic
+
+    t = (ȳ_est − ȳ_ref) / sqrt(s²_est/K + s²_ref/M)
+
+with Welch–Satterthwaite degrees of freedom gives a two-sided p-value. The
+pooled test does the same, per channel, on the image mean of each render.
+Channels are tested separately so that a colour shift with an unchanged
+channel mean is caught; an alpha channel (4th) is ignored.
+
+Error budget: total α (default 0.01), split by Bonferroni into α/2 for the
+pooled tests (α/(2C) per channel) and α/2 for the per-pixel family, which is
+Šidák-corrected over the P·C tested pixel channels:
+α_px = 1 − (1 − α/2)^(1/(P·C)). The estimator passes when no pixel channel has
+p < α_px and every pooled p ≥ α/(2C). Under the null hypothesis it fails with
+probability ≤ α.
+
+Pixels of constant radiance (zero variance on both sides) are compared to
+float32 rounding: the standard error has a floor of 1e-5 × |mean|, so two
+exact answers that differ by more than ~4e-5 relative still fail.
+
+Reading a rejection (:mod:`checks`, "the rules of evidence"): a per-pixel
+test on K renders of a heavy-tailed estimator rejects more often than its
+level says (the mean of a right-skewed sample is usually low, and so is its
+variance estimate). The checks module decides which rejections count (by
+their direction and the estimator's fireflies); :func:`replicated_compare`
+and :func:`replicate` test a rejection that counts again on K fresh renders,
+at the rejected pixels (Šidák over those, same direction) and on the image
+mean. A light-tailed false alarm replicates with probability about α, a bias
+with the test's power; an unseen tail would replicate, which is why only
+rejections that count are replicated.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import stats
+
+from ..results import BatchTest
+
+#: Default family-wise significance level of :func:`compare`.
+ALPHA = 0.01
+
+#: Relative tolerance for "equal" zero-variance pixels (float32 rounding).
+EXACT_RTOL = 1e-5
+
+
+@dataclass
+class Comparison:
+    """Outcome of :func:`compare` (p-values are two-sided)."""
+
+    alpha: float
+    alpha_pixel: float       # Šidák-corrected level per pixel channel
+    n_pixels: int
+    n_channels: int
+    pixel_p: np.ndarray      # (H, W) smallest p over channels (NaN: not tested)
+    pixel_t: np.ndarray      # (H, W) t of that channel
+    pass_fraction: float     # fraction of pixels whose channels all pass
+    min_p: float
+    pooled_t: np.ndarray     # (C,) per channel
+    pooled_p: np.ndarray     # (C,)
+    alpha_pooled: float      # level per pooled channel test
+    passed: bool
+    pooled_diff: np.ndarray | None = None   # (C,) image mean, estimator − reference
+    pooled_se: np.ndarray | None = None     # (C,) its standard error
+
+    def summary(self) -> str:
+        # (the test's own result; checks/evidence.py decides what a rejection means)
+        verdict = "no rejection" if self.passed else "rejected"
+        pooled = ", ".join(f"{t:+.2f}" for t in self.pooled_t)
+        return (f"{verdict}: {self.pass_fraction:.2%} of {self.n_pixels} pixels pass "
+                f"at Šidák α_px={self.alpha_pixel:.2e} over {self.n_channels} channels "
+                f"(min p={self.min_p:.2e}); pooled t=[{pooled}], "
+                f"min p={self.pooled_p.min():.3g} (level {self.alpha_pooled:.3g})")
+
+
+def welch(mean_a, var_a, n_a, mean_b, var_b, n_b):
+    """Welch's two-sample t-test from means and sample variances.
+
+    Returns (t, p). The squared standard error gets a floor of
+    (EXACT_RTOL·max|mean|)²: float32 renders of a constant pixel differ by
+    rounding (~1e-7 relative) depending on spp, and a sample variance of 1e-15
+    against an exact 0 must not count as evidence. Where everything is zero,
+    p = 1.
+    """
+    mean_a, var_a, mean_b, var_b = (np.asarray(x, np.float64)
+                                    for x in (mean_a, var_a, mean_b, var_b))
+    va, vb = var_a / n_a, var_b / n_b
+    scale = np.maximum(np.abs(mean_a), np.abs(mean_b))
+    se2 = va + vb + (EXACT_RTOL * scale) ** 2
+    diff = mean_a - mean_b
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(se2 > 0, diff / np.sqrt(se2), 0.0)
+        df = np.where(va + vb > 0,
+                      (va + vb) ** 2 / (va ** 2 / (n_a - 1) + vb ** 2 / (n_b - 1)), 1e6)
+    p = 2 * stats.t.sf(np.abs(t), np.maximum(df, 1.0))
+    return t, np.where(se2 > 0, p, 1.0)
+
+
+def batch_moments(renders: np.ndarray):
+    """Mean and unbiased sample variance over axis 0 of a stack of renders."""
+    renders = np.asarray(renders, np.float64)
+    if renders.shape[0] < 2:
+        raise ValueError("need at least 2 independent renders per side")
+    return renders.mean(axis=0), renders.var(axis=0, ddof=1), renders.shape[0]
+
+
+@dataclass
+class Moments:
+    """One side of a comparison, summarised: per-pixel mean and sample variance
+    of one render (H, W, C) over n renders, and the same for the image mean
+    (C,), which the pooled test uses."""
+
+    mean: np.ndarray
+    var: np.ndarray
+    n: int
+    image_mean: np.ndarray
+    image_var: np.ndarray
+
+    @classmethod
+    def pooled(cls, stacks: dict) -> "Moments":
+        """All rungs of a ladder, {spp: (K, H, W, C) renders}, as one side.
+
+        The mean weights each rung by its samples (spp·K); the per-sample
+        variance σ² is pooled from every rung's spread, Σ spp·Σ(x − x̄)² over
+        Σ (K − 1). Expressed as n = ΣK "renders" of variance σ²·n / Σ spp·K so
+        that var/n is the variance of the pooled mean. More samples per pixel
+        than the top rung alone, so rarer events are seen before judging.
+        """
+        stacks = {spp: np.asarray(x, np.float64) for spp, x in stacks.items()}
+        pixel = _pool({spp: x for spp, x in stacks.items()})
+        image = _pool({spp: x.mean(axis=(1, 2)) for spp, x in stacks.items()})
+        return cls(pixel[0], pixel[1], pixel[2], image[0], image[1])
+
+    @classmethod
+    def of(cls, renders) -> "Moments":
+        renders = np.asarray(renders, np.float64)
+        if renders.ndim == 3:
+            renders = renders[..., None]
+        mean, var, n = batch_moments(renders)
+        im, iv, _ = batch_moments(renders.mean(axis=(1, 2)))
+        return cls(mean, var, n, im, iv)
+
+
+def _pool(stacks: dict):
+    """(mean, variance of one equivalent render, n) of rungs {spp: (K, ...)}."""
+    weights, total, ss, dof, n = 0.0, 0.0, 0.0, 0, 0
+    for spp, x in sorted(stacks.items()):
+        k = x.shape[0]
+        weights += spp * k
+        total = total + spp * x.sum(axis=0)
+        ss = ss + spp * ((x - x.mean(axis=0)) ** 2).sum(axis=0)
+        dof += k - 1
+        n += k
+    if dof < 1:
+        raise ValueError("need at least 2 renders on some rung")
+    return total / weights, ss / dof * n / weights, n
+
+
+def compare(estimator, reference, alpha: float = ALPHA,
+            mask: np.ndarray | None = None) -> Comparison:
+    """Test that ``estimator`` and ``reference`` have equal means.
+
+    Each side is a stack of independent renders, shape (n, H, W, C) with C in
+    {1, 3, 4}, or its :class:`Moments` (a 4th, alpha channel is ignored).
+    ``mask`` (H, W) selects the pixels to test (default: all).
+    """
+    est = estimator if isinstance(estimator, Moments) else Moments.of(estimator)
+    ref = reference if isinstance(reference, Moments) else Moments.of(reference)
+    if est.mean.shape != ref.mean.shape:
+        raise ValueError(f"image sizes differ: {est.mean.shape} vs {ref.mean.shape}")
+    c = min(3, est.mean.shape[-1])
+    for side in (est, ref):
+        if not (np.isfinite(side.mean).all() and np.isfinite(side.var).all()):
+            raise ValueError("renders contain NaN or Inf")
+    mask = np.ones(est.mean.shape[:2], bool) if mask is None else np.asarray(mask, bool)
+    n_pixels, n_channels = int(mask.sum()), c
+    if n_pixels == 0:
+        raise ValueError("the mask selects no pixels to test")
+
+    t, p = welch(est.mean[..., :c], est.var[..., :c], est.n,
+                 ref.mean[..., :c], ref.var[..., :c], ref.n)            # (H, W, C)
+    alpha_pixel = 1.0 - (1.0 - alpha / 2) ** (1.0 / (n_pixels * n_channels))
+    tested = p[mask]                                                 # (P, C)
+
+    # Pooled: per channel, the mean over the whole image.
+    pooled_diff = est.image_mean[:c] - ref.image_mean[:c]
+    pooled_se = np.sqrt(est.image_var[:c] / est.n + ref.image_var[:c] / ref.n)
+    if mask.all():
+        pooled_t, pooled_p = welch(est.image_mean[:c], est.image_var[:c], est.n,
+                                   ref.image_mean[:c], ref.image_var[:c], ref.n)
+    else:  # image means over a mask are not kept in Moments: pixels only
+        pooled_t, pooled_p = np.zeros(c), np.ones(c)
+    alpha_pooled = alpha / (2 * n_channels)
+
+    worst = np.argmin(p, axis=-1)[..., None]
+    pixel_p = np.where(mask, np.take_along_axis(p, worst, -1)[..., 0], np.nan)
+    pixel_t = np.where(mask, np.take_along_axis(t, worst, -1)[..., 0], np.nan)
+    passed = bool(tested.min() >= alpha_pixel and pooled_p.min() >= alpha_pooled)
+    return Comparison(alpha, alpha_pixel, n_pixels, n_channels, pixel_p, pixel_t,
+                      float((tested.min(axis=-1) >= alpha_pixel).mean()),
+                      float(tested.min()), np.atleast_1d(pooled_t),
+                      np.atleast_1d(pooled_p), alpha_pooled, passed, pooled_diff, pooled_se)
+
+
+def mean_interval(values, alpha: float = ALPHA) -> tuple[float, float]:
+    """Mean of independent ``values`` and the half-width of its two-sided
+    (1 − α) Student-t confidence interval; raises ValueError for fewer than
+    two values."""
+    values = np.asarray(values, np.float64)
+    n = values.size
+    if n < 2:
+        raise ValueError("need at least 2 independent values for an interval")
+    half = stats.t.ppf(1 - alpha / 2, n - 1) * values.std(ddof=1) / np.sqrt(n)
+    return float(values.mean()), float(half)
+
+
+def loglog_fit(x, y, alpha: float = 0.05):
+    """(slope, intercept, (1 − α) slope interval) of the least-squares line
+    through log y against log x; the interval is Student-t with n − 2
+    degrees of freedom (unbounded with fewer than 3 points)."""
+    lx, ly = np.log(np.asarray(x, float)), np.log(np.asarray(y, float))
+    fit = stats.linregress(lx, ly)
+    dof = len(lx) - 2
+    half = stats.t.ppf(1 - alpha / 2, dof) * fit.stderr if dof > 0 else np.inf
+    return fit.slope, fit.intercept, (fit.slope - half, fit.slope + half)
+
+
+def replicated_compare(x, reference, fresh, alpha: float = ALPHA, decide=None) -> BatchTest:
+    """:func:`compare` of renders ``x`` with ``reference``, read by
+    ``decide(comparison, renders)`` (a :class:`checks.Decision`; None: every
+    rejection counts). Where a rejection counts (outcome "fail"), the same
+    test on ``fresh()`` renders at the rejected pixels and on the image mean:
+    ``replicated`` says whether a rejection came back in the same direction
+    (and, with ``decide``, the fresh renders' own reading does not excuse it).
+    ``replicated`` is None when nothing needed replicating: a pass, or an
+    inconclusive reading (fresh renders would miss the same tail)."""
+    first = compare(x, reference, alpha)
+    d = decide(first, x) if decide else None
+    outcome = d.outcome if d else ("pass" if first.passed else "fail")
+    out = BatchTest(passed=first.passed, pass_fraction=first.pass_fraction,
+                    min_p=first.min_p, pooled_p=[float(p) for p in first.pooled_p],
+                    alpha_pixel=first.alpha_pixel, test=first.summary(),
+                    outcome=outcome, reason=d.reason if d else "",
+                    tail_events=d.tail_events if d else 0,
+                    samples_needed=d.samples_needed if d else None,
+                    counted_up=d.counted_up if d else False)
+    rejected = first.pixel_p < first.alpha_pixel
+    out.rejected_pixels = int(rejected.sum())
+    if outcome != "fail":
+        return out
+    replicated, pixels_again, again, excused = replicated_rejection(
+        first, d, fresh(), reference, alpha, decide)
+    out.replicated_pixels = int(pixels_again.sum())
+    out.replicated = replicated
+    out.replication_test = again.summary() + (
+        " (the fresh renders caught fireflies: a tail, not a bias)" if excused else "")
+    return out
+
+
+def replicated_rejection(first: Comparison, d, y, reference, alpha: float = ALPHA,
+                         decide=None):
+    """Did the rejections of ``first`` that counted (``d``, a
+    :class:`checks.Decision`; None: all of them) come back in fresh renders
+    ``y``? An upward one counts when it comes back; a downward pixel only if
+    the fresh renders caught no firefly; the image mean only where the fresh
+    renders' own reading counts it (``decide(again, y)``). Returns
+    (replicated, pixels (H, W) that came back, the fresh comparison, whether
+    a tail in the fresh renders excused a downward one)."""
+    rejected = first.pixel_p < first.alpha_pixel
+    pixels = rejected if d is None or d.pixels is None else d.pixels
+    pooled = (first.pooled_p < first.alpha_pooled) if d is None or d.pooled is None \
+        else d.pooled
+    pixels_again, pooled_again, again = replicate(first, y, reference, alpha, pixels, pooled)
+    if d is None or decide is None:
+        return bool(pixels_again.any() or pooled_again.any()), pixels_again, again, False
+    d2 = decide(again, y)
+    up = pixels_again & (first.pixel_t > 0)
+    down = pixels_again & (first.pixel_t < 0)
+    counted_pooled = d2.pooled if d2.pooled is not None else np.ones_like(pooled_again)
+    replicated = bool(up.any() or (down.any() and d2.tail_events == 0)
+                      or (pooled_again & counted_pooled).any())
+    excused = not replicated and bool(down.any() or pooled_again.any())
+    return replicated, pixels_again, again, excused
+
+
+def replicate(first: Comparison, y, reference, alpha: float = ALPHA, pixels=None,
+              pooled=None):
+    """Test fresh renders ``y`` where ``first`` rejected (or at ``pixels``
+    (H, W) and image-mean channels ``pooled`` (C,) only): (pixels that reject
+    again in the same direction, Šidák over those tested; channels whose
+    image mean rejects again in the same direction; the fresh renders' own
+    :func:`compare`)."""
+    rejected = first.pixel_p < first.alpha_pixel
+    pixels = rejected if pixels is None else (np.asarray(pixels, bool) & rejected)
+    pooled = (first.pooled_p < first.alpha_pooled) if pooled is None else \
+        np.asarray(pooled, bool)
+    again = compare(y, reference, alpha)
+    pixels_again = np.zeros_like(rejected)
+    if pixels.any():
+        at = compare(y, reference, alpha, mask=pixels)
+        same_way = np.sign(at.pixel_t) == np.sign(first.pixel_t)
+        pixels_again = pixels & (at.pixel_p < at.alpha_pixel) & same_way
+    pooled_again = pooled & (again.pooled_p < again.alpha_pooled) & \
+        (np.sign(first.pooled_t) == np.sign(again.pooled_t))
+    return pixels_again, pooled_again, again
