@@ -11,7 +11,7 @@ BIN     = $(VENV)/bin
 validate: $(VENV)/.installed
 	$(BIN)/mcillum validate --profile quick --out out/validate --junit out/validate/junit.xml
 
-# Render the bundled Cornell box with both estimators and path.
+# Render the bundled Cornell box with cosine_hemisphere, uniform_hemisphere and path.
 render: $(VENV)/.installed
 	mkdir -p out
 	$(BIN)/mcillum render scenes/cornell_box.xml --integrator cosine_hemisphere --spp 64 -D res=256 -o out/cornell_box_cosine.exr
@@ -21,7 +21,7 @@ render: $(VENV)/.installed
 test: $(VENV)/.installed browser
 	$(BIN)/python -m pytest
 
-# The slow group (deselected by `make test`): long statistical sweeps, renders
+# The slow group (deselected by `make test`): long statistical tests, renders
 # beyond 2^32 samples, a scalar regression render. CI runs it after `make test`.
 test-slow: $(VENV)/.installed
 	$(BIN)/python -m pytest -m slow
