@@ -134,8 +134,8 @@ def validate(profile_name: str = "quick", scene_names=None, estimators=None,
     cases_estimators = list(dict.fromkeys([*estimators, registry.REFERENCE]))
     plans = [r for r in profile.runs if "scenes" in groups
              and (not scene_names or r.scene in scene_names)]
-    cases = [c for c in profile.failures if "failures" in groups
-             and (not scene_names or c.scene in scene_names)]
+    case_plans = [c for c in profile.failures if "failures" in groups
+                  and (not scene_names or c.scene in scene_names)]
     cache_dir = cache_dir or files.cache_dir()
     os.makedirs(out_dir, exist_ok=True)
     for d in (out_dir, cache_dir):   # left by a killed run (one writer at a time)
@@ -149,7 +149,7 @@ def validate(profile_name: str = "quick", scene_names=None, estimators=None,
             for r in plans if r.display and speed_stage) + \
         sum(c.seeds * len(at_depth(cases_estimators, c)) *
             max(1, len(c.sweep[1]) if c.sweep else 1)
-            for c in cases)
+            for c in case_plans)
     start = time.perf_counter()
     try:
         scene_results, case_results, checks = [], [], []
@@ -161,7 +161,7 @@ def validate(profile_name: str = "quick", scene_names=None, estimators=None,
                     result, found = compare_scene(run, plan, estimators, speed_stage)
                     scene_results.append(result)
                     checks += found
-                for plan in cases:
+                for plan in case_plans:
                     result, found = failure_case(run, plan, cases_estimators)
                     case_results.append(result)
                     checks += found
