@@ -125,6 +125,7 @@ class DirectionSetEstimator(IlluminationEstimator):
     @dr.syntax
     def sample(self, scene: mi.Scene, sampler: mi.Sampler, ray: mi.RayDifferential3f,
                medium: mi.Medium = None, active: mi.Bool = True):
+        self.check_wrapped(scene)           # (a wrapper may call sample() alone)
         ctx = mi.BSDFContext()
         ray = mi.Ray3f(ray)
         active = mi.Bool(active)

@@ -62,6 +62,15 @@ def read_depths(props: mi.Properties) -> tuple[int, int]:
     return (UNBOUNDED if max_depth == -1 else max_depth), rr_depth
 
 
+def _scene_fingerprint(scene) -> tuple:
+    """Which scene a check was for: its address and what it holds (a scene
+    cannot be weakly referenced, and a strong reference would keep it alive,
+    slowing every later render; an address alone may be reused)."""
+    box = scene.bbox()
+    return (id(scene), len(scene.shapes()), len(scene.emitters()),
+            tuple(float(x) for x in box.min), tuple(float(x) for x in box.max))
+
+
 def mis_weight(pdf_a, pdf_b):
     """Power heuristic p_a² / (p_a² + p_b²), 0 where undefined (as `path`)."""
     a, b = dr.square(pdf_a), dr.square(pdf_b)
@@ -203,6 +212,18 @@ class IlluminationEstimator(mi.SamplingIntegrator):
         if self.unreachable:
             self._warned_for = id(scene)
 
+    def check_wrapped(self, scene) -> None:
+        """The scene check where :meth:`render` was not the entry: another
+        integrator (``moment``, ``aov``, a user's wrapper) calls
+        :meth:`sample` directly. Once per scene, as :meth:`render` would
+        have run it; within this estimator's own render, nothing."""
+        if getattr(self, "_in_pass", False):
+            return
+        seen = _scene_fingerprint(scene)
+        if getattr(self, "_checked", None) != seen:
+            self.check_scene(scene)
+            self._checked = seen
+
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         if getattr(self, "_in_pass", False):
             # (Mitsuba's render calls back into this override: the outer call
@@ -254,6 +275,7 @@ class IlluminationEstimator(mi.SamplingIntegrator):
     @dr.syntax
     def sample(self, scene: mi.Scene, sampler: mi.Sampler, ray: mi.RayDifferential3f,
                medium: mi.Medium = None, active: mi.Bool = True):
+        self.check_wrapped(scene)           # (a wrapper may call sample() alone)
         if dr.hint(self.max_depth == 0, mode='scalar'):
             return mi.Spectrum(0), mi.Bool(False), []   # as `path`: no vertices
 

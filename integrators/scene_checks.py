@@ -119,31 +119,75 @@ def _flag_problems(bsdf, owner: str) -> list[Problem]:
     return out
 
 
-def _values(params, name: str) -> np.ndarray | None:
-    """All values of parameter ``name`` (uniform or textured), or None."""
-    values = [np.asarray(params[k], dtype=np.float64).ravel() for k in params.keys()
-              if k.split(".")[0] == name]
+#: A parameter given as a texture whose values cannot be read (a mesh
+#: attribute, a user's own texture): it may hold any value.
+UNREADABLE = "unreadable"
+
+#: The traversed entries that hold a parameter's values: a plain float (the
+#: parameter's own name), a uniform or sRGB spectrum's ``value``, a sampled
+#: spectrum's ``values``, a bitmap's ``data`` (a checkerboard's colours are
+#: such spectra).
+_VALUE_KEYS = ("value", "values", "data")
+#: Entries beside them that are no values: a texture's uv transform, a
+#: spectrum's wavelengths. Any other entry (a mesh attribute's ``scale``)
+#: makes the parameter unreadable.
+_OTHER_KEYS = ("to_uv", "wavelengths", "range")
+#: Microfacet BSDFs: a roughness they do not expose at all is unreadable too.
+_MICROFACET = ("RoughConductor", "RoughDielectric", "RoughPlastic", "Principled",
+               "PrincipledThin")
+_ROUGHNESS = ("alpha", "alpha_u", "alpha_v", "roughness")
+
+
+def _values(params, name: str):
+    """All values of parameter ``name``, uniform or textured; None where the
+    BSDF has no such parameter; :data:`UNREADABLE` where a texture gives it
+    and its values cannot be read."""
+    keys = [k for k in params.keys() if k.split(".")[0] == name]
+    if not keys:
+        return None
+    values = []
+    for k in keys:
+        last = k.split(".")[-1]
+        if last in _OTHER_KEYS:
+            continue
+        if k != name and last not in _VALUE_KEYS:     # (``name`` alone: a plain float)
+            return UNREADABLE
+        values.append(np.asarray(params[k], dtype=np.float64).ravel())
     values = [v for v in values if v.size]
-    return np.concatenate(values) if values else None
+    return np.concatenate(values) if values else UNREADABLE
 
 
 def _smallest(params, name: str):
     v = _values(params, name)
-    return None if v is None else float(v.min())
+    return v if v is None or v is UNREADABLE else float(v.min())
 
 
 def _roughness_problems(bsdf, owner: str) -> list[Problem]:
-    """Microfacet lobes so narrow that they are delta in all but name."""
+    """Microfacet lobes so narrow that they are delta in all but name. A
+    textured roughness counts by its smallest value; one whose values cannot
+    be read counts as near-specular (it may be), and the message says so."""
     params = mi.traverse(bsdf)
-    alphas = [a for a in (_smallest(params, k) for k in ("alpha", "alpha_u", "alpha_v"))
-              if a is not None]
+    if bsdf.class_name() in _MICROFACET and not any(
+            k.split(".")[0] in _ROUGHNESS for k in params.keys()):
+        found = [UNREADABLE]                 # a texture that exposes nothing
+    else:
+        found = [_smallest(params, k) for k in ("alpha", "alpha_u", "alpha_v")]
     roughness = _smallest(params, "roughness")   # principled: alpha = roughness²
-    if roughness is not None:
-        alphas.append(roughness ** 2)
+    found.append(roughness if roughness in (None, UNREADABLE) else roughness ** 2)
     clearcoat, gloss = _values(params, "clearcoat"), _values(params, "clearcoat_gloss")
-    if clearcoat is not None and clearcoat.max() > 0 and gloss is not None:
+    if clearcoat is UNREADABLE or gloss is UNREADABLE:
+        found.append(UNREADABLE)
+    elif clearcoat is not None and clearcoat.max() > 0 and gloss is not None:
         g = float(gloss.max())                       # principled's clearcoat lobe:
-        alphas.append(0.1 * (1 - g) + 0.001 * g)     # alpha = lerp(0.1, 0.001, gloss)
+        found.append(0.1 * (1 - g) + 0.001 * g)      # alpha = lerp(0.1, 0.001, gloss)
+    if UNREADABLE in found:
+        return [Problem(
+            "delta_bsdf", f"{owner} has a roughness given by a texture whose values "
+            "cannot be read, so it may be near-specular",
+            f"a hemisphere pdf almost never samples a near-specular lobe; "
+            f"{_FOR_DELTA_LOBES}, or give the roughness as a value, a checkerboard or a "
+            "bitmap")]
+    alphas = [a for a in found if a is not None]
     if not alphas or min(alphas) >= NEAR_DELTA_ALPHA:
         return []
     return [Problem(
