@@ -47,10 +47,56 @@ class SceneRun:
     defines: dict = field(default_factory=dict)
     display: Display | None = None
     label: str = ""                # a second run of one scene needs its own
+    #: A scene given by path (:meth:`Profile.user_run`): its film's own
+    #: (width, height); ``res`` is then the longest side it is rendered at
+    #: (the aspect kept). None: a bundled scene, which takes ``res`` as $res.
+    own_film: tuple[int, int] | None = None
+    #: Integrator settings that define its image besides ``max_depth``
+    #: (``rr_depth``, ``hide_emitters``: read off a user's scene).
+    settings: dict = field(default_factory=dict)
 
     @property
     def id(self) -> str:
         return self.label or self.scene
+
+    @property
+    def film(self) -> tuple[int, int] | None:
+        """(width, height) at ``res`` for a scene given by path; None for a
+        bundled one (see :func:`scaled_film`)."""
+        return None if self.own_film is None else scaled_film(self.own_film, self.res)
+
+    @property
+    def integrator_settings(self) -> dict:
+        """What every compared integrator and the reference are given (those
+        an integrator does not take are left out for it: run/jobs.py)."""
+        return {"max_depth": self.max_depth, **self.settings}
+
+
+def scaled_film(own: tuple[int, int], longest: int) -> tuple[int, int]:
+    """A film of aspect ``own`` whose longest side is ``longest`` (each side
+    at least 1 pixel); ``own`` itself where it is no larger."""
+    w, h = own
+    if max(w, h) <= longest:
+        return (w, h)
+    f = longest / max(w, h)
+    return (max(1, round(w * f)), max(1, round(h * f)))
+
+
+@dataclass(frozen=True, kw_only=True)
+class UserScenes:
+    """How a profile compares a scene given by path (``mcillum validate
+    my_scene.xml``): the reduced-film rule. The small-image statistics run
+    at a film whose longest side is ``res`` (the scene's aspect kept): every
+    pixel is a test of its own (K renders per rung), so a few hundred pixels
+    give the per-pixel tests and the image mean as much power as the bundled
+    scenes' 8²–24² films, at a cost that does not grow with the scene's
+    film. The equal-time images run at the scene's own film, its longest
+    side capped at ``display.res``."""
+
+    res: int                       # longest side of the statistics film
+    ladder: tuple[int, ...]
+    renders: int
+    display: Display | None = None
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -91,6 +137,13 @@ class Profile:
     failures: tuple[FailureCase, ...] = ()
     #: Integrators compared; None: every registered mcillum estimator, then path.
     estimators: tuple[str, ...] | None = None
+    #: How a scene given by path is compared (None: the profile takes none).
+    user_scenes: UserScenes | None = None
+    #: Modules or files that register integrators (mcillum/plugins.py),
+    #: imported before anything runs, on the driver and every worker.
+    plugins: tuple[str, ...] = ()
+    #: The file the profile was read from ("" for one built in Python).
+    source: str = ""
 
     def estimator_names(self) -> list[str]:
         if self.estimators is not None:
@@ -129,7 +182,9 @@ QUICK = Profile(name="quick", runs=(
     # the quadrature estimators' own case: no occlusion, diffuse, smooth light
     SceneRun(scene="lone_sphere", res=8, ladder=(4, 16, 64, 256), renders=8, max_depth=2,
              defines={"envmap": "sg"}, display=QUICK_DISPLAY),
-), reference_max_spp=1 << 18, reference_max_seconds=30.0, failures=(
+), reference_max_spp=1 << 18, reference_max_seconds=30.0,
+    user_scenes=UserScenes(res=16, ladder=(4, 16, 64, 256), renders=8, display=QUICK_DISPLAY),
+    failures=(
     # small bright sources: 64 seeds each, as the stability suite asks
     FailureCase(group="heavy_tail", scene="sun_sky", res=8, spp=16, seeds=64),
     # ... and in direct light, where the estimators of N directions run too
@@ -176,7 +231,10 @@ FULL = Profile(name="full", runs=(
     *(SceneRun(scene="lone_sphere", res=32, ladder=(4, 16, 64, 256), renders=16, max_depth=2,
                defines={"envmap": m}, display=FULL_DISPLAY, label=f"lone_sphere_{m}")
       for m in ("sg", "gradient", "courtyard", "studio", "forest")),
-), reference_max_spp=1 << 20, reference_max_seconds=600.0, failures=(
+), reference_max_spp=1 << 20, reference_max_seconds=600.0,
+    user_scenes=UserScenes(res=32, ladder=(4, 16, 64, 256, 1024), renders=16,
+                           display=FULL_DISPLAY),
+    failures=(
     FailureCase(group="heavy_tail", scene="sun_sky", res=32, spp=16, seeds=128),
     *(FailureCase(group="heavy_tail", scene="lone_sphere", res=32, spp=16, seeds=128,
                   defines={"envmap": m}, max_depth=2, label=f"lone_sphere_{m}")
