@@ -1,0 +1,393 @@
+"""Profiles as data: the dataclasses a profile is made of, and the TOML files
+that hold them. The bundled profiles (quick.toml, full.toml) ship beside this
+module; a user's file is read the same way (:func:`resolve`).
+
+The format (quick.toml is a worked example; SCHEMA lists every key)::
+
+    name = "mine"                   # Profile's settings at the top level
+    estimators = ["path", "cosine"] # optional: default every registered one
+    plugins = ["my_plugins.py"]     # optional: modules, or files
+    [display]                       # the display stage of every scene run
+    res = 128
+    [user_scenes]                   # a scene given by path; display: [display]
+    res = 16
+    ladder = [4, 16, 64, 256]
+    renders = 8
+    [[scenes]]                      # one per scene comparison
+    scene = "cornell_box"           # a bundled name, or an XML file's path
+    res = 8
+    ladder = [32, 128, 512, 2048]
+    renders = 16
+    display = false                 # none; or {res = 64} (its own)
+    [[failures]]                    # one per failure case; for a glossy one:
+    sweep = {parameter = "alpha", values = [0.5, 0.1, 0.02]}
+
+Paths (a scene with '/' or ending in .xml, a plugin with '/' or ending in
+.py) are relative to the profile file's folder. The dataclasses live here,
+not in profiles.py, because reading needs them and profiles.py reads the
+bundled files: either way round the other would be an import cycle
+(tests/test_layout.py). Why TOML: ``tomllib`` is in the standard library.
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import re
+from dataclasses import dataclass, field
+
+import tomllib
+from mcillum.integrators import registry
+
+from mcillum.errors import UsageError
+
+
+@dataclass(frozen=True, kw_only=True)
+class Display:
+    """The speed-and-images stage of a scene (stages/speed.py): the
+    resolution a person judges the images at, and the time budgets, each the
+    time `path` needs for one of ``path_spp`` (all scaled by one factor
+    until the fixed cost of a render is at most 10 % of the smallest
+    budget)."""
+
+    res: int
+    path_spp: tuple[int, ...] = (4, 8, 16)
+    renders: int = 4               # K seeds per estimator and budget
+    repeats: int = 5               # timed renders per estimator and spp (cost model)
+
+
+@dataclass(frozen=True, kw_only=True)
+class SceneRun:
+    """One scene comparison: the small-image statistics over an spp ladder,
+    and (``display``) its speed-and-images stage."""
+
+    scene: str
+    res: int                       # of the small-image statistics
+    ladder: tuple[int, ...]        # spp values, increasing
+    renders: int                   # K independent renders per (estimator, spp)
+    max_depth: int = -1
+    defines: dict = field(default_factory=dict)
+    display: Display | None = None
+    label: str = ""                # a second run of one scene needs its own
+    #: A scene given by path (:meth:`Profile.user_run`): its film's own
+    #: (width, height); ``res`` is then the longest side it is rendered at
+    #: (the aspect kept). None: a bundled scene, which takes ``res`` as $res.
+    own_film: tuple[int, int] | None = None
+    #: Integrator settings that define its image besides ``max_depth``
+    #: (``rr_depth``, ``hide_emitters``: read off a user's scene).
+    settings: dict = field(default_factory=dict)
+
+    @property
+    def id(self) -> str:
+        return self.label or self.scene
+
+    @property
+    def film(self) -> tuple[int, int] | None:
+        """(width, height) at ``res`` for a scene given by path; None for a
+        bundled one (see :func:`scaled_film`)."""
+        return None if self.own_film is None else scaled_film(self.own_film, self.res)
+
+    @property
+    def integrator_settings(self) -> dict:
+        """What every compared integrator and the reference are given (those
+        an integrator does not take are left out for it: run/jobs.py)."""
+        return {"max_depth": self.max_depth, **self.settings}
+
+
+def scaled_film(own: tuple[int, int], longest: int) -> tuple[int, int]:
+    """A film of aspect ``own`` whose longest side is ``longest`` (each side
+    at least 1 pixel); ``own`` itself where it is no larger."""
+    w, h = own
+    if max(w, h) <= longest:
+        return (w, h)
+    f = longest / max(w, h)
+    return (max(1, round(w * f)), max(1, round(h * f)))
+
+
+@dataclass(frozen=True, kw_only=True)
+class UserScenes:
+    """How a profile compares a scene given by path (``mcillum validate
+    my_scene.xml``): the reduced-film rule. The small-image statistics run
+    at a film whose longest side is ``res`` (the scene's aspect kept): every
+    pixel is a test of its own (K renders per rung), so a few hundred pixels
+    give the per-pixel tests and the image mean as much power as the bundled
+    scenes' 8²–24² films, at a cost that does not grow with the scene's
+    film. The equal-time images run at the scene's own film, its longest
+    side capped at ``display.res``."""
+
+    res: int                       # longest side of the statistics film
+    ladder: tuple[int, ...]
+    renders: int
+    display: Display | None = None
+
+
+@dataclass(frozen=True, kw_only=True)
+class FailureCase:
+    """One case of the ``failures`` group (pipeline.py, stages/cases.py,
+    checks/cases.py)."""
+
+    group: str          # heavy_tail | unreachable | geometry | numerical | glossy
+    scene: str
+    res: int
+    spp: int
+    seeds: int                     # K independent renders per estimator
+    defines: dict = field(default_factory=dict)
+    label: str = ""
+    sweep: tuple = ()              # glossy: (parameter, values from wide to narrow)
+    max_depth: int = -1
+
+    @property
+    def id(self) -> str:
+        return f"failures.{self.group}.{self.label or self.scene}"
+
+
+@dataclass(frozen=True, kw_only=True)
+class Profile:
+    """What one ``--profile`` runs, and how precise its references are."""
+
+    name: str
+    runs: tuple[SceneRun, ...]
+    reference_fraction: float = 0.1   # reference SE ≤ this × smallest compared RMSE
+    #: At the display resolution (stages/speed.py), of `path`'s own RMSE at
+    #: the largest budget: 0.25 costs about 16× path's spp there (0.1 of the
+    #: smallest RMSE of all costs 100× or more) and adds 6 % to path's relMSE,
+    #: recorded as ``reference_relmse``.
+    display_reference_fraction: float = 0.25
+    reference_spp_per_pass: int = 64
+    reference_max_spp: int = 1 << 16
+    reference_max_seconds: float = 60.0
+    failures: tuple[FailureCase, ...] = ()
+    #: Integrators compared; None: every registered mcillum estimator, then path.
+    estimators: tuple[str, ...] | None = None
+    #: How a scene given by path is compared (None: the profile takes none).
+    user_scenes: UserScenes | None = None
+    #: Modules or files that register integrators (mcillum/plugins.py),
+    #: imported before anything runs, on the driver and every worker.
+    plugins: tuple[str, ...] = ()
+    #: The file the profile was read from ("" for one built in Python).
+    source: str = ""
+
+    def estimator_names(self) -> list[str]:
+        if self.estimators is not None:
+            return list(self.estimators)
+        return [*registry.names(), registry.REFERENCE]
+
+    def check_scenes(self, names) -> None:
+        """Raise UsageError for a scene name the profile does not run."""
+        known = {r.scene for r in self.runs} | {c.scene for c in self.failures}
+        for name in names:
+            if name not in known:
+                raise UsageError(f"scene '{name}' is not in profile '{self.name}' "
+                                 f"({', '.join(sorted(known))})")
+
+
+# ------------------------------------ The files -------------------------------------
+
+#: The folder of the bundled profile files, and their names (without .toml).
+HERE = os.path.dirname(os.path.abspath(__file__))
+BUNDLED = tuple(sorted(f[:-5] for f in os.listdir(HERE) if f.endswith(".toml")))
+
+#: The groups a failure case may belong to (stages/cases.py runs each).
+FAILURE_GROUPS = ("heavy_tail", "unreachable", "geometry", "numerical", "glossy")
+
+#: What each table of a profile file may hold: key → (kind, required); the
+#: kinds are _PLAIN's and those _value() reads as tables.
+SCHEMA = {
+    "profile": {
+        "name": ("text", True), "reference_fraction": ("positive", False),
+        "display_reference_fraction": ("positive", False),
+        "reference_spp_per_pass": ("count", False), "reference_max_spp": ("count", False),
+        "reference_max_seconds": ("positive", False), "estimators": ("names", False),
+        "plugins": ("names", False), "display": ("display", False),
+        "user_scenes": ("user_scenes", False), "scenes": ("scenes", False),
+        "failures": ("failures", False),
+    },
+    "display": {"res": ("count", True), "path_spp": ("ladder", False),
+                "renders": ("count", False), "repeats": ("count", False)},
+    "user_scenes": {"res": ("count", True), "ladder": ("ladder", True),
+                    "renders": ("count", True), "display": ("display", False)},
+    "scenes": {"scene": ("text", True), "res": ("count", True), "ladder": ("ladder", True),
+               "renders": ("count", True), "max_depth": ("depth", False),
+               "defines": ("defines", False), "label": ("text", False),
+               "display": ("display", False)},
+    "failures": {"group": ("group", True), "scene": ("text", True), "res": ("count", True),
+                 "spp": ("count", True), "seeds": ("count", True),
+                 "defines": ("defines", False), "label": ("text", False),
+                 "max_depth": ("depth", False), "sweep": ("sweep", False)},
+    "sweep": {"parameter": ("text", True), "values": ("numbers", True)},
+}
+
+
+class _Invalid(Exception):
+    """What is wrong, from the key path on (the file's name is added)."""
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)      # TOML true is no count
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _array(v, test) -> bool:
+    return isinstance(v, list) and len(v) > 0 and all(test(x) for x in v)
+
+
+#: The plain kinds of value: (test, what the value must be).
+_PLAIN = {
+    "text": (lambda v: isinstance(v, str) and v != "", "a non-empty string"),
+    "count": (lambda v: _is_int(v) and v >= 1, "an integer ≥ 1"),
+    "depth": (lambda v: _is_int(v) and v >= -1, "an integer ≥ -1 (-1: unbounded)"),
+    "positive": (lambda v: _is_number(v) and v > 0, "a number > 0"),
+    "ladder": (lambda v: _array(v, lambda x: _is_int(x) and x >= 1),
+               "an array of integers ≥ 1"),
+    "names": (lambda v: _array(v, lambda x: isinstance(x, str) and x != ""),
+              "an array of non-empty strings (leave the key out for the default)"),
+    "numbers": (lambda v: _array(v, _is_number), "a non-empty array of numbers"),
+    "group": (lambda v: v in FAILURE_GROUPS, "one of " + ", ".join(FAILURE_GROUPS)),
+}
+
+
+def _show(v) -> str:
+    """A value as the file wrote it, with its TOML type."""
+    kind = {bool: "a boolean", str: "a string", int: "an integer", float: "a number",
+            list: "an array", dict: "a table"}.get(type(v), type(v).__name__)
+    return f"{str(v).lower() if isinstance(v, bool) else repr(v)} ({kind})"
+
+
+def _value(kind: str, v, where: str):
+    """``v`` checked as a ``kind`` and converted (arrays to tuples)."""
+    if kind in _PLAIN:
+        test, what = _PLAIN[kind]
+        if not test(v):
+            raise _Invalid(f"{where}: {v!r} is not {what}" if kind == "group" else
+                           f"{where}: must be {what}, got {_show(v)}")
+        if kind == "ladder" and any(b <= a for a, b in itertools.pairwise(v)):
+            raise _Invalid(f"{where}: must increase, got {v}")
+        return float(v) if kind == "positive" else tuple(v) if isinstance(v, list) else v
+    if kind == "display":
+        if v is False:                             # no display stage
+            return None
+        if not isinstance(v, dict):
+            raise _Invalid(f"{where}: must be a table or false, got {_show(v)}")
+        return Display(**_table(v, "display", where))
+    if kind == "defines":
+        for k, x in _table(v, None, where).items():
+            if isinstance(x, (list, dict)):
+                raise _Invalid(f"{where}.{k}: must be a string, number or boolean, "
+                               f"got {_show(x)}")
+        return dict(v)
+    if kind == "sweep":
+        t = _table(v, "sweep", where)
+        return (t["parameter"], t["values"])
+    if kind == "user_scenes":                      # its display defaults in read()
+        return _table(v, "user_scenes", where)
+    if not _array(v, lambda x: isinstance(x, dict)):            # scenes, failures
+        raise _Invalid(f"{where}: must be an array of tables ([[{where}]]), got {_show(v)}")
+    return [_table(x, kind, f"{where}[{i}]") for i, x in enumerate(v)]
+
+
+def _table(data, table: str | None, where: str) -> dict:
+    """``data`` checked against SCHEMA[table] (None: any keys), each value
+    converted by its kind; ``where`` is its key path ("" at the top level)."""
+    if not isinstance(data, dict):
+        raise _Invalid(f"{where}: must be a table, got {_show(data)}")
+    if table is None:
+        return data
+    schema = SCHEMA[table]
+    place = f"in {where}" if where else "at the top level"
+    for key in data:
+        if key not in schema:
+            raise _Invalid(f"unknown key '{key}' {place} (known: {', '.join(schema)})")
+    for key, (_, required) in schema.items():
+        if required and key not in data:
+            raise _Invalid(f"missing required key '{key}' {place}")
+    return {k: _value(schema[k][0], v, f"{where}.{k}" if where else k)
+            for k, v in data.items()}
+
+
+def _located(entry: str, folder: str, suffix: str) -> str:
+    """``entry`` made absolute against ``folder`` where it is a file's path
+    (it holds '/' or ends in ``suffix``); a name stays a name."""
+    if "/" in entry or entry.endswith(suffix):
+        return os.path.normpath(os.path.join(folder, os.path.expanduser(entry)))
+    return entry
+
+
+def _unique(items, where: str) -> None:
+    seen = {}
+    for i, item in enumerate(items):
+        if item.id in seen:
+            raise _Invalid(f"{where}[{i}]: '{item.id}' is already {where}[{seen[item.id]}]; "
+                           f"give one of them its own label")
+        seen[item.id] = i
+
+
+def _load(path: str) -> dict:
+    try:
+        with open(path, "rb") as f:
+            return tomllib.load(f)
+    except FileNotFoundError:
+        raise UsageError(f"{path}: no such profile file") from None
+    except OSError as err:
+        raise UsageError(f"{path}: cannot be read ({err.strerror})") from None
+    except UnicodeDecodeError as err:
+        raise UsageError(f"{path}: not UTF-8 text ({err.reason})") from None
+    except tomllib.TOMLDecodeError as err:
+        m = re.fullmatch(r"(.*) \(at line (\d+), column (\d+)\)", str(err), re.DOTALL)
+        where = f"line {m[2]}, column {m[3]}: " if m else ""
+        raise UsageError(f"{path}: {where}not valid TOML: {m[1] if m else err}") from None
+
+
+def read(path) -> Profile:
+    """The profile in the TOML file ``path``, with ``source`` its absolute
+    path and the scenes and plugins given as paths made absolute (relative
+    to the file's folder). Raises UsageError, naming the file and the key,
+    for a file that cannot be read, is not TOML or breaks :data:`SCHEMA`."""
+    name = os.fspath(path)
+    source = os.path.abspath(name)
+    folder = os.path.dirname(source)
+    try:
+        top = _table(_load(name), "profile", "")
+        display = top.pop("display", None)
+        user = top.pop("user_scenes", None)
+        runs = tuple(SceneRun(**{"display": display, **e,
+                                 "scene": _located(e["scene"], folder, ".xml")})
+                     for e in top.pop("scenes", []))
+        failures = tuple(FailureCase(**{**e, "scene": _located(e["scene"], folder, ".xml")})
+                         for e in top.pop("failures", []))
+        _unique(runs, "scenes")
+        _unique(failures, "failures")
+    except _Invalid as err:
+        raise UsageError(f"{name}: {err}") from None
+    if "plugins" in top:
+        top["plugins"] = tuple(_located(p, folder, ".py") for p in top["plugins"])
+    return Profile(**top, runs=runs, failures=failures, source=source,
+                   user_scenes=None if user is None else UserScenes(**{"display": display,
+                                                                      **user}))
+
+
+def _unknown(name: str) -> UsageError:
+    return UsageError(f"unknown profile '{name}': the bundled profiles are "
+                      f"{', '.join(BUNDLED)}; a path to a .toml file also works")
+
+
+def bundled(name: str) -> Profile:
+    """The bundled profile ``name`` (one of :data:`BUNDLED`). Raises
+    UsageError for another name."""
+    if name not in BUNDLED:
+        raise _unknown(name)
+    return read(os.path.join(HERE, f"{name}.toml"))
+
+
+def resolve(name_or_path) -> Profile:
+    """A bundled profile by name, else the profile file at a path (one that
+    ends in .toml or holds a '/'). Raises UsageError for neither, listing the
+    bundled names, and as :func:`read` does for a bad file."""
+    text = os.fspath(name_or_path)
+    if text in BUNDLED:
+        return bundled(text)
+    if text.endswith(".toml") or "/" in text or os.sep in text:
+        return read(text)
+    raise _unknown(text)
