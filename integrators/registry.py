@@ -120,14 +120,55 @@ def names() -> list[str]:
 
 
 def facts(name: str) -> Facts:
-    """Facts of a registered estimator or ``path``; an integrator we know
-    nothing about (any other Mitsuba plugin) gets neutral facts: no colour of
-    its own, assumed to reach everything."""
+    """Facts of a registered estimator or ``path``; a user's integrator those
+    its class declares (:func:`learn`); an integrator we know nothing about
+    (any other Mitsuba plugin) gets neutral facts: no colour of its own,
+    assumed to reach everything."""
     if name == REFERENCE:
         return PATH
     if name in _facts:
         return _facts[name]
+    if name in _learned:
+        return _learned[name]
     return Facts(name, name, None, frozenset(KINDS), None, listing_order=500, ours=False)
+
+
+#: The facts a user's integrator class may declare as class attributes,
+#: each as mcillum's estimators do (module docstring); what it leaves out
+#: stays neutral (its name, a spare colour, reaches every kind of content,
+#: no pdf bound, any max_depth, unbiased).
+DECLARABLE = ("display_name", "colour", "reachable", "max_direction_pdf", "listing_order",
+              "depths", "unbiased", "diffuse_only")
+
+#: name → Facts declared by a user's integrator class (not one of ours).
+_learned: dict[str, Facts] = {}
+
+
+def learn(name: str, cls) -> Facts | None:
+    """Record the facts plugin class ``cls``, registered as ``name`` by a
+    user's code, declares (:data:`DECLARABLE`), and return them; None (and
+    nothing recorded) for one of mcillum's estimators, ``path`` or a class
+    that declares none. Raises ValueError for a ``reachable`` kind that is
+    not one of :data:`KINDS`."""
+    if name == REFERENCE or name in _facts:
+        return None
+    declared = {k: getattr(cls, k) for k in DECLARABLE if hasattr(cls, k)}
+    if not declared:
+        return None
+    reachable = declared.get("reachable", KINDS)
+    unknown = [k for k in reachable if k not in KINDS]
+    if unknown:
+        raise ValueError(f"integrator '{name}' ({cls.__name__}) declares reachable "
+                         f"{', '.join(map(str, unknown))}; the kinds are {', '.join(KINDS)}")
+    depths = declared.get("depths")
+    found = Facts(name, declared.get("display_name") or name, declared.get("colour"),
+                  frozenset(reachable), declared.get("max_direction_pdf"),
+                  declared.get("listing_order", 500), ours=False,
+                  depths=tuple(depths) if depths is not None else None,
+                  unbiased=bool(declared.get("unbiased", True)),
+                  diffuse_only=bool(declared.get("diffuse_only", False)))
+    _learned[name] = found
+    return found
 
 
 def palette(names_) -> dict[str, str]:

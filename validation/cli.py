@@ -17,10 +17,13 @@ import os
 import sys
 
 from mcillum import errors, files
+from mcillum import plugins as mcillum_plugins
 from mcillum.envmaps import catalog, safety
 
 from . import results
-from .plan import profiles
+from mcillum.integrators import registry
+
+from .plan import profiles, scenes
 from .results import layout
 from .run import executors, jobs, renders, timing
 
@@ -37,6 +40,14 @@ def _scene_arguments(p, param_help: str) -> None:
     p.add_argument("--variant", default=None,
                    help="Mitsuba variant (default $MCILLUM_VARIANT or llvm_ad_rgb)")
     p.add_argument("--spp", type=int, default=64, help="samples per pixel (default 64)")
+    _plugin_argument(p)
+
+
+def _plugin_argument(p) -> None:
+    p.add_argument("--plugin", action="append", default=[], metavar="MODULE_OR_FILE",
+                   help="import a module or Python file that registers your own "
+                        "integrators (mi.register_integrator) before anything runs "
+                        "(repeatable)")
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -93,15 +104,34 @@ def _parser() -> argparse.ArgumentParser:
                     "or is inconclusive (the evidence cannot decide at this budget). Exit 0 "
                     "if no check fails (with --strict: if every check passes), 1 otherwise, "
                     "2 on usage errors.")
-    v.add_argument("--profile", choices=sorted(profiles.PROFILES), default="quick")
+    v.add_argument("scene", nargs="*", metavar="SCENE",
+                   help="Mitsuba XML scene files to compare on (your own: its <integrator> "
+                        "is replaced by each compared one and by the reference, its "
+                        "max_depth, rr_depth and hide_emitters kept), or names of the "
+                        "profile's scenes; default: the profile's scenes")
+    v.add_argument("--profile", default="quick", metavar="NAME_OR_FILE",
+                   help="quick (default), full, or a profile file (.toml)")
     v.add_argument("--groups", nargs="+", choices=profiles.GROUPS,
                    default=list(profiles.GROUPS),
                    help="run the scene comparisons and/or the failures group (default both)")
     v.add_argument("--scenes", nargs="+", metavar="SCENE",
                    help="subset of the profile's scenes (filters both groups)")
     v.add_argument("--estimators", nargs="+", metavar="NAME",
-                   help="integrator plugins to validate (default: every registered mcillum "
-                        "estimator, then path)")
+                   help="integrator plugins to validate; path, the reference, is added "
+                        "(default: every registered mcillum estimator, then path)")
+    _plugin_argument(v)
+    v.add_argument("--define", "-D", action="append", default=[], metavar="K=V",
+                   help="$-parameter of the scene files given (repeatable)")
+    v.add_argument("--max-depth", type=int, metavar="N",
+                   help="max_depth of every integrator and the reference on the scene "
+                        "files given (default: the scene's integrator's)")
+    v.add_argument("--rr-depth", type=int, metavar="N",
+                   help="rr_depth, likewise (default: the scene's)")
+    v.add_argument("--hide-emitters", choices=("true", "false"),
+                   help="hide_emitters, likewise (default: the scene's)")
+    v.add_argument("--res", type=int, metavar="N",
+                   help="longest side of the statistics film of the scene files given "
+                        "(default: the profile's reduced-film rule)")
     v.add_argument("--out", default="out/validate", help="output directory (default out/validate)")
     v.add_argument("--junit", metavar="FILE", help="also write JUnit XML, one case per check")
     v.add_argument("--cache", metavar="DIR", help="reference cache (default $MCILLUM_CACHE "
@@ -167,6 +197,7 @@ def _render(args) -> int:
     files.remove_stale_partials(os.path.dirname(os.path.abspath(args.output)))
 
     variant = renders.set_variant(args.variant)
+    _load_plugins(args.plugin, variant)
     integrator = renders.make_integrator(args.integrator, params)
     scene = renders.load_scene(args.scene, **defines)
     result = renders.render(scene, integrator, args.spp, args.seed)
@@ -192,6 +223,7 @@ def _bench(args) -> int:
     if args.json:
         files.check_output(args.json, "--json")
     variant = renders.set_variant(args.variant)
+    _load_plugins(args.plugin, variant)
     integrators = {n: jobs.make(n, params) for n in names}
     scene = renders.load_scene(args.scene, **defines)
     rows = timing.bench(scene, integrators, args.spp, args.runs)
@@ -224,7 +256,19 @@ def _validate(args) -> int:
     # commands do not need)
     from . import pipeline
 
-    profiles.PROFILES[args.profile].check_scenes(args.scenes or [])
+    profile = _profile(args.profile)
+    names = [*args.scene, *(args.scenes or [])]
+    profile.check_scenes([n for n in names if not scenes.is_path(n)])
+    for name in names:
+        if scenes.is_path(name) and not os.path.isfile(name):
+            raise _Usage(f"scene file not found: {name}")
+    given = [n for n in (args.max_depth, args.rr_depth, args.hide_emitters, args.res)
+             if n is not None]
+    if given and not any(scenes.is_path(n) for n in names):
+        raise _Usage("--max-depth, --rr-depth, --hide-emitters and --res apply to scene "
+                     "files given by path; the profile's scenes have their own")
+    if args.res is not None and args.res < 1:
+        raise _Usage(f"--res must be >= 1, got {args.res}")
     if not 0 <= args.seed_set < 1000:
         raise _Usage(f"--seed-set must be in 0…999, got {args.seed_set}")
     if args.executor != "ray" and (args.ray_address or args.ray_workers is not None):
@@ -238,20 +282,41 @@ def _validate(args) -> int:
         files.check_output(args.junit, "--junit")
     cache = args.cache or files.cache_dir()
     files.make_dir(cache, "the reference cache", "choose another with --cache DIR")
-    renders.set_variant(args.variant)
-    for name in args.estimators or []:
-        renders.make_integrator(name, {})
-    out = pipeline.validate(args.profile, args.scenes, args.estimators, args.out, cache,
+    variant = renders.set_variant(args.variant)
+    plugins = [*profile.plugins, *args.plugin]
+    _load_plugins(plugins, variant)
+    estimators = args.estimators and list(dict.fromkeys([*args.estimators,
+                                                         registry.REFERENCE]))
+    for name in estimators or []:
+        renders.make_taking(name, {"max_depth": -1})
+    settings = {"max_depth": args.max_depth, "rr_depth": args.rr_depth,
+                "hide_emitters": None if args.hide_emitters is None
+                else args.hide_emitters == "true"}
+    out = pipeline.validate(profile, names, estimators, args.out, cache,
                             args.variant, groups=tuple(args.groups),
                             seed_set=args.seed_set, speed_stage=not args.no_speed,
                             executor=args.executor, ray_address=args.ray_address,
-                            ray_workers=args.ray_workers)
+                            ray_workers=args.ray_workers, plugins=args.plugin,
+                            settings=settings, defines=_assignments(args.define),
+                            res=args.res)
     if args.junit:
         results.write_junit(args.junit, out, strict=args.strict)
     print(results.summary(out))
     print(f"report: {layout.report_html(args.out)}")
     ok = out.passed and not (args.strict and out.inconclusive)
     return EXIT_OK if ok else EXIT_FAILED
+
+
+def _profile(spec: str):
+    """A bundled profile by name or a profile file (plan/profile_files.py)."""
+    from .plan import profile_files
+    return profile_files.resolve(spec)
+
+
+def _load_plugins(specs, variant: str) -> list:
+    """Import each ``--plugin`` (mcillum/plugins.py); a failure is a usage
+    error naming the file and the exception's last line."""
+    return [mcillum_plugins.load(spec, variant) for spec in dict.fromkeys(specs)]
 
 
 def _report(args) -> int:

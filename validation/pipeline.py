@@ -35,13 +35,14 @@ import mitsuba as mi
 import numpy as np
 
 from mcillum import files
+from mcillum import plugins as mcillum_plugins
 from mcillum.errors import Interrupted
 from mcillum.integrators import registry
 
 from . import report, results
 from .checks import cases as case_checks
 from .checks import scene as scene_checks
-from .plan import profiles, seeds
+from .plan import profiles, scenes, seeds, user_scenes
 from .results import layout
 from .run import executors, renders
 from .run.progress import Progress
@@ -67,12 +68,15 @@ def run_stages(stage_list, ctx: Context) -> Context:
     return ctx
 
 
-def compare_scene(run: Run, plan: profiles.SceneRun, estimators,
-                  speed_stage: bool = True) -> tuple[results.SceneResult, list[results.Check]]:
+def compare_scene(run: Run, plan: profiles.SceneRun, estimators, speed_stage: bool = True,
+                  notes=()) -> tuple[results.SceneResult, list[results.Check]]:
     """One scene of the profile: its result and its checks (and, unless
-    ``speed_stage`` is False, its speed-and-images stage)."""
-    ctx = run_stages(SCENE, Context(run, plan, plan.id, at_depth(estimators, plan),
-                                    dict(plan.defines), label=plan.id))
+    ``speed_stage`` is False, its speed-and-images stage). ``notes``: what
+    the plan of a user's scene says about it (plan/user_scenes.py)."""
+    ctx = Context(run, plan, plan.id, at_depth(estimators, plan), dict(plan.defines),
+                  label=plan.id)
+    ctx.scene_notes += notes
+    run_stages(SCENE, ctx)
     ctx.checks = scene_checks.judge(ctx.id, ctx.measured, ctx.evidence, ctx.quadrature)
     if speed_stage and plan.display is not None and registry.REFERENCE in ctx.integrators:
         run_stages(SPEED, ctx)
@@ -110,14 +114,23 @@ def at_depth(estimators, plan) -> list[str]:
     return [n for n, d in zip(estimators, depths) if d is None or plan.max_depth in d]
 
 
-def validate(profile_name: str = "quick", scene_names=None, estimators=None,
+def validate(profile_name="quick", scene_names=None, estimators=None,
              out_dir: str = "out/validate", cache_dir: str | None = None,
              variant: str | None = None, progress: bool | None = None,
              groups=profiles.GROUPS, seed_set: int = 0,
              speed_stage: bool = True, executor: str = "local",
-             ray_address: str | None = None, ray_workers: int | None = None) -> results.Results:
-    """Run a profile: its scene comparisons and/or its failures group
-    (``groups``), filtered by scene name; write the results and the report.
+             ray_address: str | None = None, ray_workers: int | None = None,
+             plugins=(), settings: dict | None = None, defines: dict | None = None,
+             res: int | None = None) -> results.Results:
+    """Run a profile (a name, or a :class:`~.plan.profiles.Profile`): its
+    scene comparisons and/or its failures group (``groups``), filtered by
+    scene name; write the results and the report. ``scene_names`` may hold
+    scene files' paths: each is compared by the profile's ``user_scenes``
+    rule (plan/user_scenes.py) with ``defines`` ($-parameters), ``settings``
+    (``max_depth``, ``rr_depth``, ``hide_emitters``: over the scene's own)
+    and ``res`` (the statistics film's longest side); no failure case runs
+    for them. ``plugins`` (files or modules, with the profile's) are
+    imported first, here and on every worker (mcillum/plugins.py).
     ``seed_set`` picks an independent repeat (plan/seeds.py); ``speed_stage``
     False leaves out the speed-and-images stage (no verdict depends on it).
     ``executor`` says where the renders run (run/executors.py: ``local``, or
@@ -127,15 +140,24 @@ def validate(profile_name: str = "quick", scene_names=None, estimators=None,
     Ctrl-C raises :class:`mcillum.errors.Interrupted` saying what was left and what
     to do (finished renders are kept and reused by the next run).
     """
-    profile = profiles.PROFILES[profile_name]
+    profile = (profile_name if isinstance(profile_name, profiles.Profile)
+               else profiles.PROFILES[profile_name])
     variant = renders.set_variant(variant)
+    loaded = [mcillum_plugins.load(p, variant)
+              for p in dict.fromkeys([*profile.plugins, *plugins])]
     seeds.use_set(seed_set)
     estimators = list(estimators or profile.estimator_names())
     cases_estimators = list(dict.fromkeys([*estimators, registry.REFERENCE]))
+    names = list(scene_names or [])
+    bundled = [n for n in names if not scenes.is_path(n)]
+    user = [user_scenes.scene_run(profile, p, defines=defines, settings=settings, res=res,
+                                  label=label)
+            for p, label in zip(*_user_scene_labels([n for n in names if scenes.is_path(n)]))]
+    notes = {plan.id: said for plan, said in user}
     plans = [r for r in profile.runs if "scenes" in groups
-             and (not scene_names or r.scene in scene_names)]
+             and (not names or r.scene in bundled)] + [plan for plan, _ in user]
     case_plans = [c for c in profile.failures if "failures" in groups
-                  and (not scene_names or c.scene in scene_names)]
+                  and (not names or c.scene in bundled)]
     cache_dir = cache_dir or files.cache_dir()
     os.makedirs(out_dir, exist_ok=True)
     for d in (out_dir, cache_dir):   # left by a killed run (one writer at a time)
@@ -153,12 +175,13 @@ def validate(profile_name: str = "quick", scene_names=None, estimators=None,
     start = time.perf_counter()
     try:
         scene_results, case_results, checks = [], [], []
-        with start_executor(executor, ray_address, ray_workers, variant) as ex:
+        with start_executor(executor, ray_address, ray_workers, variant, loaded) as ex:
             bar = Progress(total, progress)
             run = Run(profile, variant, cache_dir, out_dir, bar, ex)
             try:
                 for plan in plans:
-                    result, found = compare_scene(run, plan, estimators, speed_stage)
+                    result, found = compare_scene(run, plan, estimators, speed_stage,
+                                                  notes.get(plan.id, ()))
                     scene_results.append(result)
                     checks += found
                 for plan in case_plans:
@@ -202,17 +225,27 @@ def estimator_facts(names) -> dict[str, results.EstimatorInfo]:
 
 
 def start_executor(kind: str = "local", address: str | None = None,
-                   workers: int | None = None, variant: str | None = None):
+                   workers: int | None = None, variant: str | None = None, plugins=()):
     """The executor of ``kind`` (run/executors.py): ``local``, or ``ray``
     (joining the cluster at ``address``, else starting one on this machine)
     with ``workers`` workers (default: one per CPU, or per GPU for a cuda
-    variant) in ``variant``. Raises ValueError for another kind."""
+    variant) in ``variant``, each importing ``plugins`` (mcillum/plugins.py:
+    a user's integrators). Raises ValueError for another kind."""
     if kind == "local":
         return executors.Local()
     if kind == "ray":
         from .run import ray_executor
-        return ray_executor.RayExecutor(address, workers, variant)
+        return ray_executor.RayExecutor(address, workers, variant, plugins)
     raise ValueError(f"unknown executor '{kind}': use one of {', '.join(executors.KINDS)}")
+
+
+def _user_scene_labels(paths) -> tuple[list[str], list[str]]:
+    """(paths, a label for each): the file's stem, or its folder and stem
+    where two stems are alike (Mitsuba's test scenes are all scene.xml)."""
+    stems = [os.path.splitext(os.path.basename(p))[0] for p in paths]
+    labels = [f"{os.path.basename(os.path.dirname(os.path.abspath(p)))}_{s}"
+              if stems.count(s) > 1 else s for p, s in zip(paths, stems)]
+    return list(paths), labels
 
 
 def _machine() -> dict:

@@ -28,7 +28,11 @@ class SceneInfo:
     name: str
     path: str
     summary: str                                  # first paragraph of the comment
-    contains: tuple[str, ...] = field(default=())
+    #: Kinds of content a hemisphere pdf cannot reach (its ``Contains:``
+    #: line); None for a user's scene, whose content is read off the loaded
+    #: scene (stages/common.py).
+    contains: tuple[str, ...] | None = field(default=())
+    bundled: bool = True
 
 
 def _header(path: str) -> str:
@@ -84,6 +88,36 @@ def index(directory: str = SCENES_DIR) -> dict[str, SceneInfo]:
         summary = " ".join(line.strip() for line in paragraph.splitlines())
         out[file[:-4]] = SceneInfo(file[:-4], path, summary, _contains(header, path))
     return out
+
+
+def is_path(name: str) -> bool:
+    """Does ``name`` (a command-line scene) name a file rather than a bundled
+    scene? An XML file name or anything with a folder in it does."""
+    return name.endswith(".xml") or os.sep in name or "/" in name
+
+
+def info(name: str) -> SceneInfo:
+    """The :class:`SceneInfo` of a bundled scene's name or of a scene file's
+    path (a user's: its header comment, if any, is its summary; its content
+    is read when it is loaded). Raises ValueError for an unknown name or a
+    file that is not there."""
+    if not is_path(name):
+        scenes = index()
+        if name not in scenes:
+            raise ValueError(f"unknown scene '{name}'; available: {', '.join(scenes)} "
+                             "(or give a scene file's path)")
+        return scenes[name]
+    full = os.path.abspath(name)
+    if not os.path.isfile(full):
+        raise ValueError(f"scene file not found: {name}")
+    try:
+        paragraph = _header(full).strip().split("\n\n")[0]
+        summary = " ".join(line.strip() for line in paragraph.splitlines())
+    except (ValueError, UnicodeDecodeError):
+        summary = ""
+    return SceneInfo(os.path.splitext(os.path.basename(full))[0], full,
+                     summary or f"{os.path.basename(full)}, a scene given by path", None,
+                     bundled=False)
 
 
 def path(name: str) -> str:

@@ -22,7 +22,8 @@ VERSION = 1
 #: against N, calibration of the posterior std); estimator facts ``unbiased``.
 #: 6: ``executor`` (where the renders ran: local or ray, workers, nodes) and
 #: per speed stage ``timed_on`` (the nodes that timed its renders).
-MINOR_VERSION = 6
+#: 7: per scene ``notes`` (a scene given by path: settings, film, refusals).
+MINOR_VERSION = 7
 
 
 @dataclass(kw_only=True)

@@ -100,4 +100,7 @@ class SceneResult:
     estimators: list[EstimatorResult]
     speed: Speed | None = optional()
     quadrature: list[Quadrature] | None = optional()
+    #: A scene given by path: what the run took from where, and which
+    #: estimators do not render it, in sentences (minor version 7).
+    notes: list[str] | None = optional()
 

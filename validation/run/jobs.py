@@ -42,6 +42,7 @@ class SceneSpec:
     path: str                                  # the XML file (absolute)
     defines: tuple[tuple[str, str], ...]       # renders.resolve_defines' output
     key: str                                   # references.cache_key: the content hash
+    film: tuple[int, int] | None = None        # a user's scene at a reduced film
 
 
 @dataclass(frozen=True)
@@ -65,6 +66,13 @@ def make(name: str, params: dict | None = None) -> Integrator:
     """:func:`renders.make_integrator`, remembering how it was made."""
     params = dict(params or {})
     return Integrator(name, tuple(sorted(params.items())), renders.make_integrator(name, params))
+
+
+def make_taking(name: str, settings: dict) -> Integrator:
+    """:func:`make` with those of ``settings`` the integrator takes
+    (:func:`renders.make_taking`): its ``params`` say which."""
+    made, taken = renders.make_taking(name, settings)
+    return Integrator(name, tuple(sorted(taken.items())), made)
 
 
 @dataclass
@@ -119,7 +127,8 @@ class Workshop:
         files when they are here with the same bytes, else from a copy of
         ``files()`` in this node's cache."""
         if spec.key not in self.scenes:
-            self.scenes[spec.key] = renders.load_resolved(*self._local(spec, files))
+            self.scenes[spec.key] = renders.load_resolved(*self._local(spec, files),
+                                                          film=spec.film)
             while len(self.scenes) > SCENES_KEPT:
                 self.scenes.popitem(last=False)
         self.scenes.move_to_end(spec.key)

@@ -35,6 +35,7 @@ import signal
 from collections import OrderedDict
 
 from mcillum import errors
+from mcillum import plugins as mcillum_plugins
 from mcillum.errors import UserError
 
 from . import jobs as jobs_
@@ -70,16 +71,19 @@ def chunk_size(jobs: int, workers: int, timed: bool) -> int:
 class RenderWorker:
     """One Ray actor: a warm Mitsuba in the run's variant."""
 
-    def __init__(self, variant: str):
+    def __init__(self, variant: str, plugins=()):
         # (this module's imports loaded mcillum first: Dr.Jit has its LLVM)
         from . import renders
         renders.set_variant(variant)
+        # a user's integrators, the driver's bytes (from its own file where
+        # this node has the same, else a copy in this node's cache)
+        self.plugins = {p.spec: mcillum_plugins.ensure(p, variant) for p in plugins}
         self.workshop = jobs_.Workshop()
         self.node = f"{node_name()} ({ray.util.get_node_ip_address()})"
 
     def versions(self) -> tuple[dict, str]:
         """(what decides the images here, this worker's node)."""
-        return _versions(), self.node
+        return _versions(self.plugins), self.node
 
     def render(self, batch, files):
         """(the renders of ``batch`` in order, this worker's node); ``files``
@@ -99,9 +103,10 @@ class RenderWorker:
             raise cause from None
 
 
-def _versions() -> dict:
-    """Versions, and a hash of mcillum's own code (two checkouts of one
-    version may differ; scene files travel with the jobs)."""
+def _versions(plugin_files: dict | None = None) -> dict:
+    """Versions, a hash of mcillum's own code (two checkouts of one
+    version may differ; scene files travel with the jobs), and the hash of
+    each user's plugin file imported (``plugin_files``: spec → path)."""
     import importlib
 
     import drjit as dr
@@ -116,8 +121,13 @@ def _versions() -> dict:
                 with open(path, "rb") as f:
                     h.update(f"{package}/{os.path.relpath(path, folder)}".encode()
                              + hashlib.sha256(f.read()).digest())
+    plugins = {}
+    for spec, path in (plugin_files or {}).items():
+        with open(path, "rb") as f:
+            plugins[f"plugin {spec}"] = hashlib.sha256(f.read()).hexdigest()[:16]
     return {"mitsuba": mi.__version__, "drjit": dr.__version__,
-            "python": platform.python_version(), "mcillum code": h.hexdigest()[:16]}
+            "python": platform.python_version(), "mcillum code": h.hexdigest()[:16],
+            **plugins}
 
 
 class RayExecutor(Executor):
@@ -125,8 +135,9 @@ class RayExecutor(Executor):
 
     kind = "ray"
 
-    def __init__(self, address: str | None, workers: int | None, variant: str):
+    def __init__(self, address: str | None, workers: int | None, variant: str, plugins=()):
         super().__init__()
+        self.plugins = list(plugins)
         self.address = address
         self.nodes: list[str] = []
         self._files: OrderedDict[str, object] = OrderedDict()
@@ -168,9 +179,9 @@ class RayExecutor(Executor):
         options = {"num_gpus": 1} if cuda else {"num_cpus": 1}
         actor = ray.remote(max_restarts=RETRIES, max_task_retries=RETRIES,
                            **options)(RenderWorker)
-        self.workers = [actor.remote(variant) for _ in range(n)]
+        self.workers = [actor.remote(variant, self.plugins) for _ in range(n)]
         self.parallelism = n
-        mine = _versions()
+        mine = _versions({p.spec: p.path for p in self.plugins})
         for theirs, node in _get([w.versions.remote() for w in self.workers]):
             differ = {k: (v, theirs.get(k)) for k, v in mine.items() if theirs.get(k) != v}
             if differ:

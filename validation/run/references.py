@@ -94,7 +94,8 @@ def _filled_by():
     return (sys.modules[__name__], renders, passes, phong)
 
 
-def cache_key(scene_path: str, defines: dict, params: dict, variant: str) -> str:
+def cache_key(scene_path: str, defines: dict, params: dict, variant: str,
+              film: tuple[int, int] | None = None) -> str:
     h = hashlib.sha256()
     for path in scenes.referenced_files(scene_path, defines):
         h.update(os.path.basename(path).encode())
@@ -104,6 +105,8 @@ def cache_key(scene_path: str, defines: dict, params: dict, variant: str) -> str
             "params": params, "variant": variant, "mitsuba": mi.__version__,
             "drjit": dr.__version__, "integrator": "path", "format": FORMAT_VERSION,
             "code": files.code_hash(*_filled_by())}
+    if film is not None:                  # a user's scene at a reduced film
+        desc["film"] = list(film)
     if seeds.seed_set():                  # another independent repeat (plan/seeds.py)
         desc["seed_set"] = seeds.seed_set()
     h.update(json.dumps(desc, sort_keys=True, default=str).encode())

@@ -12,7 +12,9 @@ what to do (Mitsuba's own say where in its source it noticed).
 from __future__ import annotations
 
 import os
+import re
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import drjit as dr
@@ -25,7 +27,7 @@ from mcillum.integrators import gp_quadrature, passes, registry
 from mcillum.errors import IntegratorError, SceneError, message, plugin_not_found
 from mcillum.errors import unreferenced_properties, unused_defines
 
-from ..plan import scenes
+from ..plan import scene_files, scenes
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
 
@@ -130,10 +132,38 @@ def load_scene(path: str | os.PathLike, envmap_policy: str = "clamp", **defines)
     return scene
 
 
-def load_resolved(path: str | os.PathLike, resolved: dict) -> mi.Scene:
+def load_resolved(path: str | os.PathLike, resolved: dict,
+                  film: tuple[int, int] | None = None) -> mi.Scene:
     """Load a scene with ``$``-parameters already passed through
-    :func:`resolve_defines` (so the envmap is not read and checked again)."""
-    return mi.load_file(os.fspath(path), **resolved)
+    :func:`resolve_defines` (so the envmap is not read and checked again);
+    with ``film`` = (width, height), at that film size (a user's scene at the
+    reduced film of the statistics: plan/scene_files.py)."""
+    path = os.fspath(path)
+    if film is None:
+        return mi.load_file(path, **resolved)
+    text, folders = scene_files.with_film(path, film, resolved)
+    # (a $-parameter that set the film size is used no more: Mitsuba
+    # refuses unused ones)
+    used = {k: v for k, v in resolved.items() if re.search(rf"\${k}\b", text)}
+    with _resolving(folders):
+        return mi.load_string(text, **used)
+
+
+@contextmanager
+def _resolving(folders):
+    """Mitsuba's file resolver looks in ``folders`` first, then where it
+    looked before (restored on exit): a scene loaded from a string finds its
+    relative files as if loaded from its own file."""
+    resolver = mi.file_resolver()
+    before = [resolver[i] for i in range(len(resolver))]
+    for folder in reversed(folders):
+        resolver.prepend(folder)
+    try:
+        yield
+    finally:
+        resolver.clear()
+        for folder in before:
+            resolver.append(folder)
 
 
 def _xml_value(value) -> str:
@@ -161,11 +191,13 @@ def make_integrator(name: str, params: dict | None = None) -> mi.Integrator:
             raise IntegratorError(f"unknown integrator '{name}': {_known()}") from None
         unknown = unreferenced_properties(text)
         if unknown:
-            raise IntegratorError(
+            refused = IntegratorError(
                 f"integrator '{name}' has no parameter {', '.join(unknown)}: mcillum's "
                 "integrators take max_depth, rr_depth, hide_emitters and "
                 "allow_unreachable; Mitsuba's own are listed in its documentation "
-                "(Plugin reference > Integrators)") from None
+                "(Plugin reference > Integrators)")
+            refused.unknown = list(unknown)
+            raise refused from None
         raise IntegratorError(f"integrator '{name}' rejected {shown or 'its defaults'}: "
                               f"{text}") from None
     if not isinstance(integrator, mi.Integrator):
@@ -174,7 +206,29 @@ def make_integrator(name: str, params: dict | None = None) -> mi.Integrator:
                                     (mi.Sensor, "a sensor")) if isinstance(integrator, c)),
                     "another kind of")
         raise IntegratorError(f"'{name}' is {kind} plugin, not an integrator: {_known()}")
+    try:                     # a user's integrator: the facts its class declares
+        registry.learn(name, type(integrator))
+    except ValueError as err:
+        raise IntegratorError(str(err)) from None
     return integrator
+
+
+def make_taking(name: str, settings: dict) -> tuple[mi.Integrator, dict]:
+    """(integrator ``name`` given those of ``settings`` it takes, those
+    settings). A user's direct-light integrator may take no ``max_depth``:
+    it is made without it, and the comparison still renders the reference
+    with it (validation/run/jobs.py). Raises :class:`IntegratorError` as
+    :func:`make_integrator` for anything else."""
+    taken = dict(settings)
+    while True:
+        try:
+            return make_integrator(name, taken), taken
+        except IntegratorError as err:
+            unknown = [k for k in getattr(err, "unknown", ()) if k in taken]
+            if not unknown:
+                raise
+            for key in unknown:
+                del taken[key]
 
 
 # ----------------------------------- Render ------------------------------------

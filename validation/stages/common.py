@@ -11,13 +11,14 @@ are the checks' (:mod:`~mcillum.validation.checks`).
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
 
 import numpy as np
 
-from mcillum.integrators import registry
+from mcillum.integrators import registry, scene_checks
 
 from ..plan import scenes, seeds
 from ..results import ReferenceSummary
@@ -29,25 +30,54 @@ REFERENCE = registry.REFERENCE
 # ----------------------------- Scene and estimators ----------------------------
 
 def load(ctx) -> None:
-    """The scene with the plan's resolution and $-parameters; its cache key."""
-    index = scenes.index()
-    if ctx.scene_name not in index:
-        raise ValueError(f"{ctx.id}: no scene '{ctx.scene_name}' in {scenes.SCENES_DIR}")
-    ctx.info = index[ctx.scene_name]
-    ctx.resolved = renders.resolve_defines(ctx.info.path, **{"res": ctx.res, **ctx.defines})
-    ctx.scene = renders.load_resolved(ctx.info.path, ctx.resolved)
-    ctx.params = {"max_depth": ctx.max_depth}
-    ctx.scene_key = references.cache_key(ctx.info.path, ctx.resolved, ctx.params,
-                                         ctx.run.variant)
-    ctx.scene_spec = jobs.SceneSpec(os.path.abspath(ctx.info.path),
-                                    tuple(sorted(ctx.resolved.items())), ctx.scene_key)
+    """The scene with the plan's resolution and $-parameters (a bundled
+    scene takes the resolution as $res, a user's is loaded at the plan's
+    film); its cache key. A user's scene's content (what a hemisphere pdf
+    cannot reach) is read off the loaded scene, as the estimators read it."""
+    try:
+        info = scenes.info(ctx.scene_name)
+    except ValueError as err:
+        raise ValueError(f"{ctx.id}: {err}") from None
+    film = getattr(ctx.plan, "film", None)
+    defines = ctx.defines if film is not None else {"res": ctx.res, **ctx.defines}
+    ctx.resolved = renders.resolve_defines(info.path, **defines)
+    ctx.scene = renders.load_resolved(info.path, ctx.resolved, film=film)
+    if info.contains is None:
+        kinds = {p.kind for p in scene_checks.unreachable(ctx.scene)}
+        info = dataclasses.replace(info, contains=tuple(k for k in scene_checks.KINDS
+                                                        if k in kinds))
+    ctx.info = info
+    ctx.params = dict(getattr(ctx.plan, "integrator_settings", None)
+                      or {"max_depth": ctx.max_depth})
+    ctx.scene_key = references.cache_key(info.path, ctx.resolved, ctx.params,
+                                         ctx.run.variant, film=film)
+    ctx.scene_spec = jobs.SceneSpec(os.path.abspath(info.path),
+                                    tuple(sorted(ctx.resolved.items())), ctx.scene_key, film)
 
 
 def choose_estimators(ctx) -> None:
     """The estimators asked for whose registry facts say they reach every
-    kind of content the scene header declares (at the plan's max_depth)."""
-    ctx.integrators = {n: jobs.make(n, ctx.params) for n in ctx.estimators
-                       if registry.facts(n).renders(ctx.info.contains, ctx.max_depth)}
+    kind of content the scene holds (at the plan's max_depth), each given
+    those of the scene's integrator settings it takes (`path`, the
+    reference, takes them all)."""
+    ctx.integrators = {}
+    for name in ctx.estimators:
+        facts = registry.facts(name)
+        if facts.renders(ctx.info.contains, ctx.max_depth):
+            ctx.integrators[name] = made = jobs.make_taking(name, ctx.params)
+            left = [k for k in ctx.params if k not in dict(made.params)]
+            if left:
+                ctx.scene_notes.append(
+                    f"{name} takes no {', '.join(left)}: rendered without "
+                    f"{'it' if len(left) == 1 else 'them'}; the reference with "
+                    + ", ".join(f"{k} {ctx.params[k]}" for k in left))
+        elif not ctx.info.bundled:     # (a bundled scene's header says so already)
+            missing = [scene_checks.KIND_NAMES[k] for k in ctx.info.contains
+                       if k not in facts.reaches]
+            why = (f"the scene holds {', '.join(missing)}" if missing else
+                   f"it defines max_depth {', '.join(map(str, facts.depths or ()))} only, "
+                   f"not {ctx.max_depth}")
+            ctx.scene_notes.append(f"{name} does not render this scene: {why}")
 
 
 def release(ctx) -> None:

@@ -78,6 +78,9 @@ class Context:
     flip_maps: dict = field(default_factory=dict)     # speed.measure_speed: name → (H, W)
     timed_on: list = field(default_factory=list)      # speed.render_budgets: nodes that timed
     notes: list = field(default_factory=list)         # speed.*: what did not hold
+    #: pipeline, choose_estimators: what a user's scene's result says (its
+    #: settings and film, estimators that do not render it, settings not taken)
+    scene_notes: list = field(default_factory=list)
     checks: list = field(default_factory=list)        # pipeline, by checks/: results.Check
 
     @property

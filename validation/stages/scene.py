@@ -59,7 +59,7 @@ def measure(ctx) -> None:
         found = ctx.evidence[name] = bias_evidence(rungs[name], ref, runs, tail[name],
                                                    path_events)
         ctx.measured[name] = EstimatorResult(
-            name=name, params=ctx.params,
+            name=name, params=dict(ctx.integrators[name].params),
             compile_seconds=ctx.compile_seconds.get(name, float("nan")), runs=runs,
             unbiasedness=unbiasedness_record(found, max(ladder)),
             convergence=convergence_fit(runs))
@@ -183,4 +183,5 @@ def scene_result(ctx) -> SceneResult:
         summary=scene_summary(ctx), res=ctx.res, max_depth=ctx.max_depth,
         ladder=list(ctx.plan.ladder), renders=ctx.plan.renders,
         reference=reference_summary(ctx.reference), estimators=list(ctx.measured.values()),
-        speed=ctx.speed, quadrature=list(ctx.quadrature.values()) or None)
+        speed=ctx.speed, quadrature=list(ctx.quadrature.values()) or None,
+        notes=list(ctx.scene_notes) or None)

@@ -1,0 +1,282 @@
+"""Validate your own integrator on your own scene.
+
+A user's integrator lives in a file outside the repository (written here
+into a temporary folder), registered by ``mi.register_integrator``; their
+scene is written as stock Mitsuba scenes are (test_stock_scenes.py:
+``<include>``, ``<path>``, textured roughness, the integrator nested in
+``moment``). ``mcillum validate scene.xml --plugin my_integrator.py``
+compares it with `path` with the scene's own settings, at a reduced film.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+import mitsuba as mi
+
+from mcillum import plugins
+from mcillum.errors import UsageError
+from mcillum.integrators import registry
+from mcillum.validation import cli, pipeline
+from mcillum.validation.plan import profiles, scene_files, scenes, user_scenes
+from mcillum.validation.run import renders
+
+from test_stock_scenes import POINT, SKY, write_scene
+
+#: A user's first integrator: direct light by emitter sampling, no max_depth.
+#: ``my_direct_broken`` is its twin whose light samples are 5 % too dark.
+MY_INTEGRATOR = '''
+import mitsuba as mi
+
+
+class MyDirect(mi.SamplingIntegrator):
+    display_name = "my direct light"
+
+    def __init__(self, props):
+        super().__init__(props)
+        self.weight = props.get("weight", 1.0)
+
+    def sample(self, scene, sampler, ray, medium=None, active=True):
+        si = scene.ray_intersect(ray, active)
+        L = si.emitter(scene, active).eval(si, active)
+        hit = active & si.is_valid()
+        ds, w = scene.sample_emitter_direction(si, sampler.next_2d(hit), True, hit)
+        f = si.bsdf(ray).eval(mi.BSDFContext(), si, si.to_local(ds.d), hit)
+        return L + self.weight * w * f, si.is_valid(), []
+
+
+class MyDirectBroken(MyDirect):
+    def __init__(self, props):
+        super().__init__(props)
+        self.weight = 0.95
+
+
+mi.register_integrator("my_direct", lambda props: MyDirect(props))
+mi.register_integrator("my_direct_broken", lambda props: MyDirectBroken(props))
+'''
+
+DIRECT = '<integer name="max_depth" value="2"/>'
+
+
+@pytest.fixture
+def user(tmp_path):
+    """(the user's integrator file, their scene file) in folders of their own."""
+    plugin = tmp_path / "code" / "my_integrator.py"
+    plugin.parent.mkdir()
+    plugin.write_text(MY_INTEGRATOR)
+    (tmp_path / "scene").mkdir()
+    return str(plugin), write_scene(tmp_path / "scene", params=DIRECT)
+
+
+# ------------------------------- Reading the scene -------------------------------
+
+def test_settings_are_read_through_the_moment_wrapper(tmp_path):
+    path = write_scene(tmp_path, params=DIRECT + '<boolean name="hide_emitters" value="true"/>')
+    settings, wrappers = scene_files.integrator_settings(path)
+    assert settings == {"max_depth": 2, "hide_emitters": True}
+    assert wrappers == ["moment"]
+
+
+def test_settings_take_dollar_parameters_and_a_scene_without_integrator_sets_none(tmp_path):
+    path = write_scene(tmp_path, params='<integer name="max_depth" value="$depth"/>')
+    text = open(path).read().replace('<default name="res"', '<default name="depth" '
+                                     'value="3"/>\n    <default name="res"')
+    open(path, "w").write(text)
+    assert scene_files.integrator_settings(path)[0] == {"max_depth": 3}
+    assert scene_files.integrator_settings(path, {"depth": 5})[0] == {"max_depth": 5}
+    bare = tmp_path / "bare.xml"
+    bare.write_text('<scene version="3.0.0"><shape type="sphere"/></scene>')
+    assert scene_files.integrator_settings(str(bare)) == ({}, [])
+
+
+def test_film_is_read_and_reduced_with_includes_inlined(llvm, tmp_path):
+    """The sensor may sit in an included file; the reduced film keeps the
+    aspect, and the scene loads from the edited text with its relative
+    files (a <path> folder, an OBJ mesh, a bitmap texture) found."""
+    path = write_scene(tmp_path)
+    sensor = open(path).read()
+    start, end = sensor.index("<sensor"), sensor.index("</sensor>") + len("</sensor>")
+    (tmp_path / "fragments" / "camera.xml").write_text(
+        '<scene version="3.0.0">' + sensor[start:end].replace("$res", "$width", 1) + "</scene>")
+    text = (sensor[:start] + '<include filename="fragments/camera.xml"/>' + sensor[end:])
+    text = text.replace('<default name="res" value="8"/>',
+                        '<default name="res" value="60"/><default name="width" value="80"/>')
+    open(path, "w").write(text)
+    assert scene_files.film_size(path) == (80, 60)
+    assert profiles.scaled_film((80, 60), 16) == (16, 12)
+    scene = renders.load_resolved(path, {"integrator": "path"}, film=(16, 12))
+    assert list(scene.sensors()[0].film().size()) == [16, 12]
+    assert len(scene.shapes()) == 2
+    image = renders.render(scene, renders.make_integrator("path"), 4).image
+    assert image.shape[:2] == (12, 16) and image.mean() > 0
+
+
+def test_a_scene_file_with_a_missing_include_says_which(tmp_path):
+    path = tmp_path / "s.xml"
+    path.write_text('<scene version="3.0.0"><include filename="gone.xml"/></scene>')
+    with pytest.raises(scene_files.SceneFileError, match="gone.xml.*not found"):
+        scene_files.film_size(str(path))
+
+
+def test_the_plan_keeps_the_scene_settings_unless_the_user_overrides(tmp_path):
+    path = write_scene(tmp_path, params=DIRECT)
+    run, notes = user_scenes.scene_run(profiles.QUICK, path)
+    assert (run.max_depth, run.res, run.film, run.own_film) == (2, 8, (8, 8), (8, 8))
+    assert any("seen through moment" in n for n in notes)
+    run, notes = user_scenes.scene_run(profiles.QUICK, path, settings={"max_depth": 3},
+                                       defines={"res": 100}, res=10)
+    assert (run.max_depth, run.film, run.display.res) == (3, (10, 10), 100)
+    assert any("given by the user: max_depth 3" in n for n in notes)
+    assert scenes.info(path).contains is None and not scenes.info(path).bundled
+
+
+# ---------------------------------- Plugins ---------------------------------------
+
+def test_a_plugin_file_registers_its_integrators_and_their_declared_facts(llvm, user):
+    plugin, _ = user
+    loaded = plugins.load(plugin, mi.variant())
+    assert loaded.module == "my_integrator" and len(loaded.sha256) == 64
+    made, taken = renders.make_taking("my_direct", {"max_depth": 2, "hide_emitters": False})
+    # (hide_emitters is read by mi.SamplingIntegrator itself)
+    assert taken == {"hide_emitters": False} and made is not None
+    assert registry.facts("my_direct").display_name == "my direct light"
+    assert registry.facts("my_direct").colour is None         # not declared: a spare one
+    assert not registry.facts("my_direct").ours
+
+
+def test_a_plugin_that_fails_to_import_is_a_usage_error_naming_the_file(llvm, tmp_path):
+    bad = tmp_path / "bad_plugin.py"
+    bad.write_text("import mitsuba as mi\nraise RuntimeError('no GPU here')\n")
+    with pytest.raises(UsageError, match=r"bad_plugin.py failed: RuntimeError: no GPU here"):
+        plugins.load(str(bad), mi.variant())
+    with pytest.raises(UsageError, match="no such file"):
+        plugins.load(str(tmp_path / "missing.py"))
+    with pytest.raises(UsageError, match="cannot import module 'no_such_module_x'"):
+        plugins.load("no_such_module_x")
+
+
+def test_cli_exits_2_for_a_plugin_that_fails_to_import(llvm, tmp_path, capsys, user):
+    bad = tmp_path / "bad_plugin.py"
+    bad.write_text("raise ImportError('needs torch')\n")
+    _, scene = user
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["validate", scene, "--plugin", str(bad), "--out", str(tmp_path / "o")])
+    assert exit_.value.code == 2
+    assert "needs torch" in capsys.readouterr().err
+
+
+def test_declared_reachable_kinds_must_be_known(llvm, tmp_path):
+    code = tmp_path / "odd.py"
+    code.write_text(textwrap.dedent('''
+        import mitsuba as mi
+        class Odd(mi.SamplingIntegrator):
+            reachable = ("delta_emitter", "caustics")
+            def sample(self, scene, sampler, ray, medium=None, active=True):
+                return mi.Spectrum(0), active, []
+        mi.register_integrator("odd_one", lambda props: Odd(props))
+    '''))
+    plugins.load(str(code), mi.variant())
+    with pytest.raises(renders.IntegratorError, match="caustics; the kinds are"):
+        renders.make_integrator("odd_one")
+
+
+# ------------------------------- One command ----------------------------------
+
+def run_cli(capsys, *args):
+    code = cli.main(["validate", *args, "--no-speed", "-D", "res=64"])
+    return code, capsys.readouterr()
+
+
+def test_one_command_from_a_plugin_and_a_scene_to_a_verdict(llvm, tmp_path, capsys, user):
+    """The correct integrator passes (exit 0) with JUnit and a report; the
+    notes say where the settings came from and what it was not given."""
+    plugin, scene = user
+    out = tmp_path / "out"
+    code, said = run_cli(capsys, scene, "--plugin", plugin, "--estimators", "my_direct",
+                         "--out", str(out), "--junit", str(out / "junit.xml"))
+    assert code == 0, said.out + said.err
+    data = json.loads((out / "results.json").read_text())
+    (result,) = data["scenes"]
+    assert [e["name"] for e in result["estimators"]] == ["my_direct", "path"]
+    assert result["estimators"][0]["params"] == {}
+    assert result["estimators"][1]["params"] == {"max_depth": 2}
+    notes = " | ".join(result["notes"])
+    assert "seen through moment): max_depth 2" in notes
+    assert "my_direct takes no max_depth" in notes
+    assert data["estimator_facts"]["my_direct"]["display_name"] == "my direct light"
+    assert (out / "junit.xml").exists() and (out / "report" / "index.html").exists()
+
+
+def test_the_broken_twin_exits_1_naming_the_check(llvm, tmp_path, capsys, user):
+    plugin, scene = user
+    code, said = run_cli(capsys, scene, "--plugin", plugin, "--estimators", "my_direct_broken",
+                         "--out", str(tmp_path / "out"))
+    assert code == 1
+    assert "scene/my_direct_broken/unbiased" in said.out
+
+
+def test_estimators_that_cannot_render_a_user_scene_say_why(llvm, tmp_path, capsys):
+    """A point light: the hemisphere estimator is not compared, and the
+    results say so; emitter sampling is, and agrees."""
+    scene = write_scene(tmp_path, lights=SKY + POINT, params=DIRECT)
+    code, said = run_cli(capsys, scene, "--estimators", "cosine_hemisphere",
+                         "emitter_sampling", "--out", str(tmp_path / "out"))
+    assert code == 0, said.out + said.err
+    (result,) = json.loads((tmp_path / "out" / "results.json").read_text())["scenes"]
+    assert [e["name"] for e in result["estimators"]] == ["emitter_sampling", "path"]
+    assert any(n.startswith("cosine_hemisphere does not render this scene: the scene "
+                            "holds delta lights") for n in result["notes"])
+
+
+def test_scene_options_need_a_scene_file_and_a_missing_file_is_named(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["validate", "--max-depth", "2", "--out", str(tmp_path)])
+    assert exit_.value.code == 2
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["validate", str(tmp_path / "nope.xml"), "--out", str(tmp_path)])
+    assert exit_.value.code == 2 and "scene file not found" in capsys.readouterr().err
+
+
+def test_render_and_bench_take_plugins(llvm, tmp_path, capsys, user):
+    plugin, scene = user
+    out = tmp_path / "r.exr"
+    assert cli.main(["render", scene, "--plugin", plugin, "-i", "my_direct", "--spp", "4",
+                     "-D", "integrator=path", "-o", str(out)]) == 0
+    assert out.exists()
+    assert cli.main(["bench", scene, "--plugin", plugin, "--integrators", "my_direct,path",
+                     "--spp", "4", "--runs", "2", "-D", "integrator=path"]) == 0
+    assert "my_direct" in capsys.readouterr().out
+
+
+@pytest.mark.ray
+@pytest.mark.skipif(importlib.util.find_spec("ray") is None,
+                    reason="Ray is not installed: pip install -e '.[ray]'")
+def test_ray_imports_the_plugin_on_its_workers_and_renders_the_same(tmp_path, user):
+    """The same comparison on Ray (in a subprocess, as test_ray.py says
+    why): the workers import the user's file, and the statistical renders
+    are bit-identical to the local run's."""
+    plugin, scene = user
+    for kind in ("local", "ray"):
+        args = [sys.executable, "-m", "mcillum.validation.cli", "validate", scene,
+                "--plugin", plugin, "--estimators", "my_direct", "--no-speed", "-D", "res=64",
+                "--out", str(tmp_path / kind), "--cache", str(tmp_path / f"cache-{kind}")]
+        if kind == "ray":
+            args += ["--executor", "ray", "--ray-workers", "2"]
+        done = subprocess.run(args, capture_output=True, text=True, timeout=900)
+        assert done.returncode == 0, done.stderr
+    stacks = sorted(p.relative_to(tmp_path / "local")
+                    for p in (tmp_path / "local" / "renders").rglob("*.npz"))
+    assert len(stacks) >= 4                 # the ladder's rungs, both integrators in each
+    for rel in stacks:
+        with np.load(tmp_path / "local" / rel) as a, np.load(tmp_path / "ray" / rel) as b:
+            images = [k for k in a.files if a[k].ndim >= 3]
+            assert images, rel
+            for k in images:
+                assert np.array_equal(a[k], b[k], equal_nan=True), f"{rel} {k}"
