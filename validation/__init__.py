@@ -15,6 +15,7 @@ tests/test_layout.py reads this table and fails on an import that breaks it.
 
 Layers, top to bottom:
 
+    testing pytest_plugin  a user's tests: the comparison as a function, a pytest plugin
     validation.cli        the `mcillum` command: parses arguments, calls the library
     validation.pipeline   the orchestrator: stage lists, checks, results, report
     validation.report     the HTML page, its charts and its image parts
@@ -28,5 +29,5 @@ Layers, top to bottom:
     mcillum               the front door: LLVM set-up and plugin registration
     integrators           the plugins, one estimator per file, and their facts
     envmaps               environment maps: probes, procedural maps, the loading policy
-    errors files images   mcillum's own helpers: errors, files, tone mapping
+    errors files images plugins   mcillum's own helpers: errors, files, tone mapping, users' plugins
 """
