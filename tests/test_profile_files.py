@@ -99,7 +99,7 @@ def dump(profile: Profile) -> str:
     inline): the reader must bring every one of them back."""
     top = {f.name: getattr(profile, f.name) for f in dataclasses.fields(Profile)
            if f.name not in ("runs", "failures", "user_scenes", "source")}
-    lines = [f"{k} = {_toml(v)}" for k, v in top.items() if v is not None]
+    lines = [f"{k} = {_toml(v)}" for k, v in top.items() if v not in (None, ())]
     if profile.user_scenes is not None:
         lines += ["[user_scenes]", *(f"{k} = {_toml(v)}" for k, v in
                                      dataclasses.asdict(profile.user_scenes).items())]
@@ -135,6 +135,7 @@ name = "mine"
 reference_max_seconds = 5          # an integer where a float is meant: fine
 estimators = ["path", "cosine"]
 plugins = ["plugins/mine.py", "mymodule.plugins", "extra.py", "/opt/abs.py"]
+scene_files = ["../shared/room.xml", "kitchen.xml"]
 
 [display]
 res = 64
@@ -145,13 +146,7 @@ ladder = [4, 16]
 renders = 4
 
 [[scenes]]
-scene = "../shared/room.xml"
-res = 8
-ladder = [4, 16]
-renders = 4
-
-[[scenes]]
-scene = "kitchen.xml"
+scene = "furnace_sphere"
 res = 8
 ladder = [4, 16]
 renders = 4
@@ -189,10 +184,10 @@ def test_a_users_file_has_its_paths_made_absolute(tmp_path, monkeypatch):
     assert profile.reference_max_spp == Profile.reference_max_spp    # the default
     assert profile.plugins == (str(folder / "plugins" / "mine.py"), "mymodule.plugins",
                                str(folder / "extra.py"), "/opt/abs.py")
-    room, kitchen, cornell = profile.runs
-    assert room.scene == str(tmp_path / "shared" / "room.xml")
-    assert room.display == Display(res=64)         # [display]
-    assert kitchen.scene == str(folder / "kitchen.xml") and kitchen.display is None
+    assert profile.scene_files == (str(tmp_path / "shared" / "room.xml"),
+                                   str(folder / "kitchen.xml"))
+    furnace, cornell = profile.runs
+    assert furnace.scene == "furnace_sphere" and furnace.display is None
     assert cornell == SceneRun(scene="cornell_box", res=8, ladder=(32, 128), renders=16,
                                max_depth=3, defines={"envmap": "sg", "radius": 0.5},
                                label="cornell_deep",
@@ -203,6 +198,18 @@ def test_a_users_file_has_its_paths_made_absolute(tmp_path, monkeypatch):
     assert case.scene == str(folder / "sub" / "glossy.xml")
     assert case.sweep == ("alpha", (0.5, 0.1))
     assert profile_files.read(folder / "mine.toml") == profile
+
+
+def test_a_scene_file_belongs_in_scene_files_and_needs_user_scenes(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text('name = "x"\n[[scenes]]\nscene = "room.xml"\nres = 8\nladder = [4]\n'
+                   'renders = 2\n')
+    with pytest.raises(UsageError, match=r"bad.toml: scenes\[0\].scene: 'room.xml' is a file: "
+                                         r"a scene file goes in scene_files"):
+        profile_files.read(bad)
+    bad.write_text('name = "x"\nscene_files = ["room.xml"]\n')
+    with pytest.raises(UsageError, match=r"bad.toml: scene_files needs a \[user_scenes\]"):
+        profile_files.read(bad)
 
 
 def test_an_unknown_profile_name_lists_the_bundled_ones():

@@ -280,3 +280,27 @@ def test_ray_imports_the_plugin_on_its_workers_and_renders_the_same(tmp_path, us
             assert images, rel
             for k in images:
                 assert np.array_equal(a[k], b[k], equal_nan=True), f"{rel} {k}"
+
+
+def test_a_profile_file_names_the_plugin_the_estimators_and_the_scene(llvm, tmp_path, capsys,
+                                                                      user):
+    """Everything in one file of the user's: `--profile mine.toml`."""
+    (tmp_path / "mine.toml").write_text(textwrap.dedent('''
+        name = "mine"
+        plugins = ["code/my_integrator.py"]
+        estimators = ["my_direct", "path"]
+        scene_files = ["scene/scene.xml"]
+
+        [user_scenes]
+        res = 12
+        ladder = [4, 16, 64, 256]
+        renders = 8
+    '''))
+    code, said = run_cli(capsys, "--profile", str(tmp_path / "mine.toml"),
+                         "--out", str(tmp_path / "out"))
+    assert code == 0, said.out + said.err
+    data = json.loads((tmp_path / "out" / "results.json").read_text())
+    assert data["profile"] == "mine" and data["failures"] == []
+    (result,) = data["scenes"]
+    assert result["name"] == "scene" and result["res"] == 12
+    assert [e["name"] for e in result["estimators"]] == ["my_direct", "path"]

@@ -264,7 +264,8 @@ def _validate(args) -> int:
             raise _Usage(f"scene file not found: {name}")
     given = [n for n in (args.max_depth, args.rr_depth, args.hide_emitters, args.res)
              if n is not None]
-    if given and not any(scenes.is_path(n) for n in names):
+    if given and not (any(scenes.is_path(n) for n in names)
+                      or (not names and profile.scene_files)):
         raise _Usage("--max-depth, --rr-depth, --hide-emitters and --res apply to scene "
                      "files given by path; the profile's scenes have their own")
     if args.res is not None and args.res < 1:

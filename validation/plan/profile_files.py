@@ -164,6 +164,9 @@ class Profile:
     #: Modules or files that register integrators (mcillum/plugins.py),
     #: imported before anything runs, on the driver and every worker.
     plugins: tuple[str, ...] = ()
+    #: Scene files compared by the ``user_scenes`` rule when the command
+    #: line names no scenes (absolute paths).
+    scene_files: tuple[str, ...] = ()
     #: The file the profile was read from ("" for one built in Python).
     source: str = ""
 
@@ -198,7 +201,8 @@ SCHEMA = {
         "display_reference_fraction": ("positive", False),
         "reference_spp_per_pass": ("count", False), "reference_max_spp": ("count", False),
         "reference_max_seconds": ("positive", False), "estimators": ("names", False),
-        "plugins": ("names", False), "display": ("display", False),
+        "plugins": ("names", False), "scene_files": ("names", False),
+        "display": ("display", False),
         "user_scenes": ("user_scenes", False), "scenes": ("scenes", False),
         "failures": ("failures", False),
     },
@@ -352,9 +356,12 @@ def read(path) -> Profile:
         top = _table(_load(name), "profile", "")
         display = top.pop("display", None)
         user = top.pop("user_scenes", None)
-        runs = tuple(SceneRun(**{"display": display, **e,
-                                 "scene": _located(e["scene"], folder, ".xml")})
-                     for e in top.pop("scenes", []))
+        entries = top.pop("scenes", [])
+        for i, e in enumerate(entries):
+            if _located(e["scene"], folder, ".xml") != e["scene"]:
+                raise _Invalid(f"scenes[{i}].scene: '{e['scene']}' is a file: a scene file "
+                               "goes in scene_files = [...], compared by [user_scenes]")
+        runs = tuple(SceneRun(**{"display": display, **e}) for e in entries)
         failures = tuple(FailureCase(**{**e, "scene": _located(e["scene"], folder, ".xml")})
                          for e in top.pop("failures", []))
         _unique(runs, "scenes")
@@ -363,6 +370,12 @@ def read(path) -> Profile:
         raise UsageError(f"{name}: {err}") from None
     if "plugins" in top:
         top["plugins"] = tuple(_located(p, folder, ".py") for p in top["plugins"])
+    if "scene_files" in top:
+        top["scene_files"] = tuple(os.path.normpath(os.path.join(folder, os.path.expanduser(p)))
+                                   for p in top["scene_files"])
+        if user is None:
+            raise UsageError(f"{name}: scene_files needs a [user_scenes] table (how a scene "
+                             "file is compared: res, ladder, renders)")
     return Profile(**top, runs=runs, failures=failures, source=source,
                    user_scenes=None if user is None else UserScenes(**{"display": display,
                                                                       **user}))
