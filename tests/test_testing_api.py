@@ -1,0 +1,233 @@
+"""The testing API (mcillum/testing.py) and the pytest plugin
+(mcillum/pytest_plugin.py), as a user's test suite meets them: a user's
+direct-light integrator and its broken twin (every light sample 5 % too
+dark), a scene written the way stock Mitsuba scenes are, in folders outside
+the checkout.
+
+The plugin's tests run a user's test file in a fresh pytest process
+(``pytester.runpytest_subprocess``): the plugin must arrive by its
+``pytest11`` entry point alone, as it does for a user, and Mitsuba's
+variant and the user's imported plugin stay out of this process.
+``pytester`` is enabled by ``pytest_plugins`` below: pytest forbids that
+variable in a non-root conftest.py, not in a test module.
+"""
+
+from __future__ import annotations
+
+import os
+import textwrap
+import xml.etree.ElementTree as ET
+from types import SimpleNamespace
+
+import pytest
+from mcillum.validation.results import Check
+from test_stock_scenes import write_scene
+
+from mcillum.errors import UsageError
+from mcillum.testing import (
+    Comparison,
+    Inconclusive,
+    assert_passes,
+    assert_unbiased,
+    compare,
+)
+
+pytest_plugins = ["pytester"]
+
+#: A user's integrators: direct light by emitter sampling, and its broken twin.
+PLUGIN = '''
+import mitsuba as mi
+
+
+class MyDirect(mi.SamplingIntegrator):
+    def __init__(self, props):
+        super().__init__(props)
+        self.weight = props.get("weight", 1.0)
+
+    def sample(self, scene, sampler, ray, medium=None, active=True):
+        si = scene.ray_intersect(ray, active)
+        L = si.emitter(scene, active).eval(si, active)
+        hit = active & si.is_valid()
+        ds, w = scene.sample_emitter_direction(si, sampler.next_2d(hit), True, hit)
+        f = si.bsdf(ray).eval(mi.BSDFContext(), si, si.to_local(ds.d), hit)
+        return L + self.weight * w * f, si.is_valid(), []
+
+
+class MyDirectBroken(MyDirect):
+    def __init__(self, props):
+        super().__init__(props)
+        self.weight = 0.95          # every light sample 5 % too dark
+
+
+mi.register_integrator("my_direct", lambda props: MyDirect(props))
+mi.register_integrator("my_direct_broken", lambda props: MyDirectBroken(props))
+'''
+
+#: The film's $res: 32², reduced to the quick profile's 16² for the statistics.
+DEFINES = {"res": 32}
+
+
+@pytest.fixture(scope="module")
+def user(tmp_path_factory):
+    """The user's folders: the plugin file, the scene (max_depth 2: direct
+    light, as my_direct computes) and a references cache that every test of
+    this module shares (a second comparison of the scene reuses `path`'s
+    reference)."""
+    root = tmp_path_factory.mktemp("user")
+    plugin = root / "my_integrator.py"
+    plugin.write_text(PLUGIN)
+    scene = write_scene(root / "scene", params='<integer name="max_depth" value="2"/>')
+    return SimpleNamespace(plugin=str(plugin), scene=scene, cache=str(root / "cache"))
+
+
+def run(user, integrator, out_dir):
+    return compare(user.scene, integrator, plugins=user.plugin, out_dir=out_dir,
+                   cache_dir=user.cache, defines=DEFINES)
+
+
+# ------------------------------ compare and assert ------------------------------
+
+def test_a_correct_integrator_passes_with_the_reference_rendered(user, tmp_path):
+    c = run(user, "my_direct", tmp_path)
+    assert_passes(c)
+    assert_unbiased(c)
+    assert {k.id for k in c.checks} >= {"scene/my_direct/unbiased", "scene/my_direct/finite"}
+    assert c.passed and c.failed == [] and c.inconclusive == []
+    assert c.reference_checks, "path was not rendered beside the integrator"
+    assert c.report == str(tmp_path / "report" / "index.html") and os.path.isfile(c.report)
+    assert c.images == [str(tmp_path / "images" / "scene")]
+    assert any("statistics at 16×16" in n for n in c.notes), c.notes
+
+
+def test_the_broken_twin_fails_naming_the_check_images_and_report(user, tmp_path):
+    c = run(user, "my_direct_broken", tmp_path)
+    assert [k.id for k in c.failed] == ["scene/my_direct_broken/unbiased"]
+    for judge in (assert_passes, assert_unbiased):
+        with pytest.raises(AssertionError) as err:
+            judge(c)
+        assert not isinstance(err.value, Inconclusive)
+        text = str(err.value)
+        assert "scene/my_direct_broken/unbiased: image mean darker" in text, text
+        assert f"report: {c.report}" in text and os.path.isfile(c.report)
+        assert f"images: {tmp_path / 'images' / 'scene'}" in text
+
+
+# The verdicts of the helpers, on comparisons made up of checks (no render).
+
+def made_up(*outcomes, notes=()):
+    checks = [Check(id=f"room/mine/{what}", passed=o != "fail", message=f"{what} said {o}",
+                    outcome=o) for what, o in outcomes]
+    results = SimpleNamespace(checks=checks, scenes=[SimpleNamespace(name="room",
+                                                                     notes=list(notes))])
+    return Comparison(scene="room.xml", integrator="mine", reference="path",
+                      results=results, out_dir="/runs/room", report="/runs/room/report.html")
+
+
+def test_inconclusive_raises_inconclusive_with_what_could_not_decide():
+    c = made_up(("finite", "pass"), ("unbiased", "inconclusive"))
+    for judge in (assert_passes, assert_unbiased):
+        with pytest.raises(Inconclusive) as err:
+            judge(c)
+        assert "room/mine/unbiased: unbiased said inconclusive" in str(err.value)
+        assert "none failed" in str(err.value) and "report: /runs/room/report.html" in str(err.value)
+        assert isinstance(err.value, AssertionError)     # never a pass where unknown
+    with pytest.raises(AssertionError) as err:
+        assert_passes(c, strict=True)
+    assert not isinstance(err.value, Inconclusive) and "counted as failures" in str(err.value)
+
+
+def test_a_failure_outweighs_inconclusive_checks_and_lists_both():
+    c = made_up(("unbiased", "fail"), ("converges", "inconclusive"))
+    with pytest.raises(AssertionError) as err:
+        assert_passes(c)
+    assert not isinstance(err.value, Inconclusive)
+    text = str(err.value)
+    assert "failed 1 of 2 checks" in text and "inconclusive too:\n  room/mine/converges" in text
+
+
+def test_no_check_is_no_pass():
+    """An integrator that refused the scene has no checks: say so, with why."""
+    c = made_up(notes=["mine does not render this scene: the scene holds glossy lobes"])
+    with pytest.raises(AssertionError, match="no check of 'mine' ran on scene 'room'.*glossy"):
+        assert_passes(c)
+
+
+def test_assert_unbiased_judges_only_the_unbiased_checks():
+    assert_unbiased(made_up(("unbiased", "pass"), ("converges", "fail")))
+    with pytest.raises(AssertionError, match="failed 1 of 2 checks"):
+        assert_passes(made_up(("unbiased", "pass"), ("converges", "fail")))
+    with pytest.raises(AssertionError, match="no unbiased check.*use assert_passes"):
+        assert_unbiased(made_up(("bias_shrinks", "pass"), ("calibrated", "pass")))
+
+
+@pytest.mark.parametrize("scene, kwargs, said", [
+    ("room.xml", {"reference": "volpath"}, "always Mitsuba's path tracer"),
+    ("no_such_scene", {}, "is no scene of profile 'quick' (its scenes: furnace_sphere"),
+    ("furnace_sphere", {"max_depth": 3}, "max_depth apply to a scene file"),
+])
+def test_usage_errors_say_what_to_do(scene, kwargs, said, tmp_path):
+    with pytest.raises(UsageError) as err:
+        compare(scene, "my_direct", out_dir=tmp_path, **kwargs)
+    assert said in str(err.value)
+    assert not any(tmp_path.iterdir()), "nothing may run before the arguments are checked"
+
+
+# --------------------------------- The plugin ----------------------------------
+
+@pytest.fixture
+def fresh(pytester, monkeypatch):
+    """A user's pytest run in its own process; plugins load by entry point."""
+    monkeypatch.delenv("PYTEST_DISABLE_PLUGIN_AUTOLOAD", raising=False)
+    monkeypatch.delenv("PYTEST_ADDOPTS", raising=False)
+    return pytester
+
+
+def test_the_fixture_passes_the_correct_and_fails_the_broken_integrator(user, fresh):
+    fresh.makepyfile(test_mine=textwrap.dedent(f"""
+        from mcillum.testing import assert_passes
+
+        def check(mcillum_compare, name):
+            assert_passes(mcillum_compare({user.scene!r}, name, plugins=[{user.plugin!r}],
+                                          cache_dir={user.cache!r}, defines={DEFINES!r}))
+
+        def test_correct(mcillum_compare):
+            check(mcillum_compare, "my_direct")
+
+        def test_broken(mcillum_compare):
+            check(mcillum_compare, "my_direct_broken")
+        """))
+    junit = fresh.path / "junit.xml"
+    result = fresh.runpytest_subprocess(f"--junitxml={junit}", timeout=300)
+    result.assert_outcomes(passed=1, failed=1)
+    result.stdout.fnmatch_lines(["*scene/my_direct_broken/unbiased: image mean darker*",
+                                 "*Captured mcillum call*", "*my_direct_broken on *: report *"])
+    reports = {case.get("name"): prop.get("value") for case in ET.parse(junit).iter("testcase")
+               for prop in case.iter("property") if prop.get("name") == "mcillum_report"}
+    assert set(reports) == {"test_correct", "test_broken"}, reports
+    for name, report in reports.items():        # in the test's own tmp_path
+        assert report.endswith(os.path.join(f"{name}0", "mcillum", "report", "index.html"))
+        assert os.path.isfile(report)
+
+
+def test_inconclusive_is_xfail_by_default_and_a_failure_when_strict(fresh):
+    fresh.makepyfile(test_mine=textwrap.dedent("""
+        import mitsuba as mi
+        from mcillum.testing import Inconclusive
+
+        def test_loaded_by_entry_point_without_a_variant(request):
+            assert request.config.pluginmanager.has_plugin("mcillum")
+            assert mi.variant() is None        # the plugin set none: no test asked
+
+        def test_undecided():
+            raise Inconclusive("room/mine/unbiased: 4 renders more would decide")
+
+        def test_plain_failure():
+            assert 1 == 2
+        """))
+    result = fresh.runpytest_subprocess("-rx")
+    result.assert_outcomes(passed=1, xfailed=1, failed=1)
+    said = "inconclusive: room/mine/unbiased: 4 renders more would decide"
+    result.stdout.fnmatch_lines([f"XFAIL *test_undecided - {said}"])
+    result = fresh.runpytest_subprocess("--mcillum-strict")
+    result.assert_outcomes(passed=1, failed=2)
+    result.stdout.fnmatch_lines(["*inconclusive, counted as a failure (--mcillum-strict)*"])
