@@ -11,7 +11,7 @@ every registered estimator unless it names its own list.
 from __future__ import annotations
 
 from . import profile_files
-from .profile_files import (
+from .plans import (
     Display,
     FailureCase,
     Profile,

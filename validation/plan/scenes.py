@@ -144,7 +144,8 @@ def referenced_files(scene_path: str, defines: dict) -> list[str]:
         seen.append(path)
         if not path.endswith(".xml"):
             return
-        text = open(path, encoding="utf-8").read()
+        with open(path, encoding="utf-8") as f:
+            text = f.read()
         local = {**defaults(path), **params}
         for ref in _FILE_REF.findall(text):
             for k, v in sorted(local.items(), key=lambda kv: -len(kv[0])):

@@ -16,7 +16,7 @@ import os
 from mcillum.errors import UsageError
 
 from . import scene_files
-from .profiles import Profile, SceneRun
+from .plans import Profile, SceneRun
 
 
 def scene_run(profile: Profile, path: str, *, defines: dict | None = None,

@@ -24,10 +24,20 @@ def scene_section(scene: SceneResult, run_dir: str, colours: dict,
 <section id="{scene.name}">
 <h2>{html.escape(scene.name)} <small>max_depth {scene.max_depth}</small></h2>
 <p class=desc>{html.escape(scene.summary)}</p>
+{_notes(scene)}
 {speed}
 {_statistics_section(scene, run_dir, colours, by_design)}
 {_quadrature_section(scene, colours) if scene.quadrature else ""}
 </section>"""
+
+
+def _notes(scene: SceneResult) -> str:
+    """A scene given by path: where its settings came from, its film, and
+    which estimators do not render it."""
+    if not scene.notes:
+        return ""
+    items = "".join(f"<li>{html.escape(n)}</li>" for n in scene.notes)
+    return f"<ul class=notes>{items}</ul>"
 
 
 def _quadrature_section(scene: SceneResult, colours: dict) -> str:

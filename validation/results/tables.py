@@ -49,7 +49,7 @@ def summary(results: Results) -> str:
         capped = f", capped: {ref.capped}" if ref.capped else ""
         lines += [f"## {scene.name} ({scene.res}², max_depth {scene.max_depth})",
                   "", f"Reference: `path`, {ref.spp} spp in {ref.passes} passes{capped}.",
-                  "",
+                  "", *(f"- {n}" for n in scene.notes or ()), *([""] if scene.notes else []),
                   "| estimator | relMSE @ top spp | bias ± se | unbiased (pass %) | slope [95% CI] "
                   "| samples/s | efficiency |",
                   "|---|---|---|---|---|---|---|"]
