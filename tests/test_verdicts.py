@@ -169,3 +169,101 @@ def test_replication_tests_only_the_rejections_that_counted():
     real = [replicated(biased(), biased, ref, mean) for _ in range(20)]
     assert sum(t.outcome == "fail" and bool(t.replicated) for t in real) >= 19, \
         [(t.outcome, t.replicated) for t in real]
+
+
+# ------------------------- path's own renders as the control -------------------------
+
+def rare_pixel(rng, k=8, spp=256, q=0.003, hits=None, scale=1.0):
+    """K renders (k, P, P, 3) of a smooth scene with one pixel, (0, 0), whose
+    value rests on rare sub-pixel hits (probability ``q`` per sample, 0.8
+    each: a sliver of a bright edge). ``hits`` (k,) are that pixel's hit
+    counts, shared by every estimator on a rung (same seeds, same pixel
+    samples); ``scale`` multiplies the smooth part (a biased estimator)."""
+    x = scale * (1.0 + rng.normal(0, SIGMA / np.sqrt(spp), (k, P, P, 1)))
+    x[:, 0, 0, 0] = hits * 0.8 / spp
+    return np.repeat(x, 3, axis=-1)
+
+
+def rare_reference(q=0.003):
+    mean = np.full((P, P, 3), 1.0)
+    mean[0, 0] = 0.8 * q
+    return statistics.Moments(mean, np.full((P, P, 3), 1e-8), 10_000,
+                              mean.mean(axis=(0, 1)), np.full(3, 1e-10)), mean
+
+
+def judged(x, path, ref, mean, spp=256, **given):
+    c, cp = statistics.compare(x, ref), statistics.compare(path, ref)
+    events, n, carried = tails.tail_events([x], mean)
+    return evidence.bias_outcome(c, events, n, spp * n, carried,
+                                 control=evidence.control_pixels(cp), **given)
+
+
+def test_a_pixel_path_misses_as_much_on_the_same_samples_is_not_counted():
+    """The estimator and path saw no hit where six were expected: both are
+    darker there, with no firefly. Without the control the estimator fails;
+    with it, that pixel is path's as much (inconclusive, saying so), and a
+    darker pixel that path does not share still fails."""
+    rng = np.random.default_rng(3)
+    ref, mean = rare_reference()
+    hits = np.zeros(8, int)
+    x, path = rare_pixel(rng, hits=hits), rare_pixel(rng, hits=hits)
+    c = statistics.compare(x, ref)
+    events, n, carried = tails.tail_events([x], mean)
+    assert evidence.bias_outcome(c, events, n, 256 * n, carried).outcome == "fail"
+    d = judged(x, path, ref, mean)
+    assert d.outcome == "inconclusive" and "path's own renders" in d.reason, d.reason
+    assert d.rejected_down == 1
+    x[:, 5, 5] -= 0.3                       # a bias at a pixel path does not share
+    assert judged(x, path, ref, mean).outcome == "fail"
+
+
+def test_path_against_its_own_reference_fails_only_on_the_image_mean():
+    rng = np.random.default_rng(4)
+    ref, mean = rare_reference()
+    hits = np.zeros(8, int)
+    path = rare_pixel(rng, hits=hits)
+    assert judged(path, path, ref, mean, is_control=True).outcome == "inconclusive"
+    shifted = rare_pixel(rng, hits=hits, scale=0.98)     # a reference of other settings
+    assert judged(shifted, shifted, ref, mean, is_control=True).outcome == "fail"
+
+
+LADDER = (4, 16, 64, 256)
+
+
+def ladder_outcomes(rng, q, scale=1.0):
+    """(without the control, with it): the outcomes of one estimator's
+    pooled ladder (8 renders per rung) on the rare-pixel scene, hits drawn
+    per render and shared with path's ladder."""
+    ref, mean = rare_reference(q)
+    hits = {s: rng.binomial(s, q, 8) for s in LADDER}
+    xs = {s: rare_pixel(rng, hits=hits[s], spp=s, q=q, scale=scale) for s in LADDER}
+    ps = {s: rare_pixel(rng, hits=hits[s], spp=s, q=q) for s in LADDER}
+    c = statistics.compare(statistics.Moments.pooled(xs), ref)
+    control = evidence.control_pixels(statistics.compare(statistics.Moments.pooled(ps), ref))
+    events, n, carried = tails.tail_events(list(xs.values()), mean, list(xs))
+    samples = sum(8 * s for s in LADDER)
+    return tuple(evidence.bias_outcome(c, events, n, samples, carried, control=cp).outcome
+                 for cp in (None, control))
+
+
+def test_the_control_keeps_false_fails_at_alpha_and_the_power_on_a_twin():
+    """300 trials of a correct estimator's ladder on the rare-pixel scene
+    (one hit per 1000 samples; the pooled ladder expects 2.7 in all): without
+    the control the rare pixel fails it far more often than α (about 8 %);
+    with it, at most α (binomial bound at 0.001). A twin 2 % too dark is
+    still caught every time (its image mean, and pixels path does not share)."""
+    rng = np.random.default_rng(11)
+    found = [ladder_outcomes(rng, 0.001) for _ in range(300)]
+    plain = sum(a == "fail" for a, _ in found)
+    controlled = sum(b == "fail" for _, b in found)
+    assert plain > stats.binom.ppf(0.999, 300, ALPHA), plain
+    assert controlled <= stats.binom.ppf(0.999, 300, ALPHA), controlled
+    twins = [ladder_outcomes(rng, 0.001, scale=0.98)[1] for _ in range(30)]
+    assert twins.count("fail") == 30, twins
+
+
+def test_a_replication_has_the_top_rungs_samples_in_more_renders():
+    from mcillum.validation.stages import scene
+    assert scene.replication_budget(256, 8) == (64, 32)
+    assert scene.replication_budget(2, 8) == (1, 16)
+    assert scene.replication_budget(1, 8) == (1, 8)

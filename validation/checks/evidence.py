@@ -87,6 +87,15 @@ def by_design(name: str) -> bool:
 #   s + d (d: the deficit beyond the test's critical value), i.e. the renders
 #   saw only k of about k·(s + d)/s events. If a Poisson count that low has
 #   probability below the pooled test's level, the tail cannot explain it.
+# * A pixel's rejection does not count where **path's own renders** reject
+#   there in the same direction (:func:`control_pixels`): every estimator's
+#   K renders on a rung share their seeds, so they share the pixel samples;
+#   where a pixel's value rests on events too rare for the budget (a sliver
+#   of a bright edge in a dark pixel), path's renders, the control, differ
+#   from the path reference as much, and the difference says nothing about
+#   the estimator. For path itself every pixel rejection is of that kind
+#   (path against path); its image mean still counts (a reference rendered
+#   with other settings would shift it).
 # * A rejection that does not count is **inconclusive**: the test saw a
 #   difference that a tail could explain, and ``samples_needed`` says about
 #   how many samples per pixel would see the tail TAIL_EVENTS times there.
@@ -125,18 +134,36 @@ def tail_can_carry(c, events: int, carried: np.ndarray) -> np.ndarray:
     return stats.poisson.cdf(events, expected) >= c.alpha_pooled
 
 
+def control_pixels(c) -> np.ndarray | None:
+    """(H, W): +1 where path's own renders' comparison ``c`` rejects upward,
+    −1 downward, 0 elsewhere (None: not tested)."""
+    if c is None:
+        return None
+    return np.where(c.pixel_p < c.alpha_pixel, np.sign(c.pixel_t), 0).astype(np.int8)
+
+
 def bias_outcome(c, events: np.ndarray, renders: int, samples: int,
-                 carried: np.ndarray, reference_events: np.ndarray | None = None) -> Decision:
+                 carried: np.ndarray, reference_events: np.ndarray | None = None,
+                 control: np.ndarray | None = None, is_control: bool = False) -> Decision:
     """The outcome of :class:`statistics.Comparison` ``c`` given the
     estimator's fireflies per pixel ``events`` over its ``renders`` renders
     of ``samples`` samples per pixel in all, what they ``carried`` of the
-    image mean (tails.tail_events), and path's fireflies per pixel
-    (``reference_events``, None: not known) (the rules above)."""
+    image mean (tails.tail_events), path's fireflies per pixel
+    (``reference_events``, None: not known) and path's own rejections on
+    the same pixel samples (``control``: :func:`control_pixels`; for path
+    itself ``is_control``) (the rules above)."""
     rejected = c.pixel_p < c.alpha_pixel
     up, down = rejected & (c.pixel_t > 0), rejected & (c.pixel_t < 0)
+    shared = np.zeros_like(up)
+    if is_control:
+        shared = up | down
+    elif control is not None:
+        shared = (up & (control > 0)) | (down & (control < 0))
+    n_shared = int(shared.sum())
+    up, down = up & ~shared, down & ~shared
     ref_tail = np.zeros_like(up) if reference_events is None else reference_events > 0
     up_counted = int((up & ~ref_tail).sum())
-    n_up, n_down = int(up.sum()), int(down.sum())
+    n_up, n_down = int(up.sum()), int(down.sum())      # (besides the shared ones)
     pooled = np.asarray(c.pooled_p) < c.alpha_pooled
     high = pooled & (np.asarray(c.pooled_t) > 0)            # per channel
     low = pooled & (np.asarray(c.pooled_t) < 0)
@@ -148,7 +175,9 @@ def bias_outcome(c, events: np.ndarray, renders: int, samples: int,
     pixels = (up & ~ref_tail) | (down if not heavy else np.zeros_like(down))
 
     def decide(outcome, reason, needed=None):
-        return Decision(outcome=outcome, reason=reason, rejected_up=n_up, rejected_down=n_down,
+        return Decision(outcome=outcome, reason=reason, rejected_up=n_up + int((shared & (
+                            c.pixel_t > 0)).sum()), rejected_down=n_down + int((shared & (
+                            c.pixel_t < 0)).sum()),
                         samples_needed=needed, tail_events=total, pixels=pixels,
                         pooled=high | low_counted, counted_up=bool(up_counted or pooled_up))
 
@@ -166,6 +195,12 @@ def bias_outcome(c, events: np.ndarray, renders: int, samples: int,
         counted.append(f"darker at {n_down} px, with no firefly in {renders} renders")
     if counted:
         return decide("fail", "; ".join(counted))
+    control_said = (f"at {n_shared} px path's own renders (the same pixel samples) differ "
+                    "from the path reference as much: events too rare there for this budget"
+                    if n_shared else "")
+    if not (pooled.any() or n_up or n_down):
+        return decide("inconclusive", control_said + "; more samples per pixel there would "
+                      "decide")
     # Every rejection is one a tail can explain: how many samples would see it?
     where = down if n_down else np.ones_like(down)
     seen = int(events[where].sum())
@@ -180,6 +215,8 @@ def bias_outcome(c, events: np.ndarray, renders: int, samples: int,
     if n_up:
         why.append(f"brighter at {n_up} px, where path's own renders caught fireflies "
                    "(the reference may lack its tail there)")
+    if control_said:
+        why.append(control_said)
     return decide("inconclusive", "; ".join(why)
                   + f"; about {needed:.2g} samples per pixel would see the tail "
                   f"{TAIL_EVENTS:.0f}× there" + ("" if seen else " (none seen: at least)"),
@@ -213,6 +250,10 @@ class Evidence:
     samples: int
     carried: np.ndarray
     reference_events: np.ndarray | None = None
+    #: path's own rejections on the same pixel samples (:func:`control_pixels`);
+    #: ``is_control``: this is path's evidence.
+    control: np.ndarray | None = None
+    is_control: bool = False
     replication: "Replication | None" = None
 
     @property
@@ -223,7 +264,8 @@ class Evidence:
     def first_reading(self) -> "Decision":
         """:func:`bias_outcome` of the pooled test (before replication)."""
         return bias_outcome(self.comparison, self.events, self.renders, self.samples,
-                            self.carried, self.reference_events)
+                            self.carried, self.reference_events, self.control,
+                            self.is_control)
 
 
 @dataclass(kw_only=True)

@@ -63,6 +63,12 @@ def measure(ctx) -> None:
             compile_seconds=ctx.compile_seconds.get(name, float("nan")), runs=runs,
             unbiasedness=unbiasedness_record(found, max(ladder)),
             convergence=convergence_fit(runs))
+    # path's own renders share every estimator's seeds, hence its pixel
+    # samples: its rejections mark pixels the budget cannot judge (evidence.py)
+    if REFERENCE in ctx.evidence:
+        control = evidence.control_pixels(ctx.evidence[REFERENCE].comparison)
+        for name, found in ctx.evidence.items():
+            found.control, found.is_control = control, name == REFERENCE
 
 
 def run_stats(stack, reference) -> RunStats:
@@ -135,24 +141,40 @@ def convergence_fit(runs: list[RunStats], alpha: float = 0.05) -> Convergence:
                        passed=bool(hi < 0))
 
 
+#: A replication renders the top rung's samples in this many times K renders.
+REPLICATION_SPLIT = 4
+
+
+def replication_budget(top: int, k: int) -> tuple[int, int]:
+    """(spp, renders) of a replication: the samples of K renders at the top
+    rung, in :data:`REPLICATION_SPLIT` × as many renders. The image-mean test
+    on K = 8 renders has 7 degrees of freedom and needs |t| > 5 at its level
+    (α/6); on 32 it needs 3.5: the same samples, a test with the power of
+    the first reading (docs/measurements.md, 2026-12-01)."""
+    split = max(1, min(REPLICATION_SPLIT, top))
+    return top // split, k * split
+
+
 def replicate(ctx) -> None:
-    """A rejection that counts by the rules of evidence is tested again on K
-    fresh renders at the top rung (statistics.replicated_rejection): if it
-    does not come back, the check reads inconclusive (an α-chance alarm, or a
-    bias too small for K)."""
-    top, k, ref = ctx.plan.ladder[-1], ctx.plan.renders, ctx.reference
+    """A rejection that counts by the rules of evidence is tested again on
+    fresh renders, as many samples as the top rung's K renders
+    (:func:`replication_budget`; statistics.replicated_rejection): if it
+    does not come back, the check reads inconclusive (an α-chance alarm, or
+    a bias too small for the budget)."""
+    ref = ctx.reference
+    spp, k = replication_budget(ctx.plan.ladder[-1], ctx.plan.renders)
     for name, found in ctx.evidence.items():
         if found.comparison is None:
             continue
         first = found.first_reading()
         if first.outcome != "fail":
             continue
-        y = fresh(ctx, name, top, k)[..., :3]
+        y = fresh(ctx, name, spp, k)[..., :3]
         replicated, pixels, _, excused = statistics.replicated_rejection(
             found.comparison, first, y, ref.moments(), ALPHA,
-            evidence.decider(ref.mean, top, found.reference_events))
+            evidence.decider(ref.mean, spp, found.reference_events))
         found.replication = evidence.Replication(replicated=replicated, pixels=pixels,
-                                                 excused=excused, renders=y.shape[0], spp=top)
+                                                 excused=excused, renders=y.shape[0], spp=spp)
 
 
 # ---------------------------------- Images --------------------------------------
