@@ -108,12 +108,18 @@ def test_film_is_read_and_reduced_with_includes_inlined(llvm, tmp_path):
     text = (sensor[:start] + '<include filename="fragments/camera.xml"/>' + sensor[end:])
     text = text.replace('<default name="res" value="8"/>',
                         '<default name="res" value="60"/><default name="width" value="80"/>')
+    # a PLY mesh (written from a rectangle) beside the OBJ one, found through <path>
+    ply = mi.load_dict({"type": "rectangle", "to_world": mi.ScalarTransform4f().translate(
+        [0, -1.7, 0]).rotate([1, 0, 0], -90).scale(3)})
+    ply.write_ply(str(tmp_path / "common" / "meshes" / "floor.ply"))
+    text = text.replace("</scene>", '<shape type="ply"><string name="filename" '
+                        'value="meshes/floor.ply"/></shape></scene>')
     open(path, "w").write(text)
     assert scene_files.film_size(path) == (80, 60)
     assert profiles.scaled_film((80, 60), 16) == (16, 12)
     scene = renders.load_resolved(path, {"integrator": "path"}, film=(16, 12))
     assert list(scene.sensors()[0].film().size()) == [16, 12]
-    assert len(scene.shapes()) == 2
+    assert len(scene.shapes()) == 3
     image = renders.render(scene, renders.make_integrator("path"), 4).image
     assert image.shape[:2] == (12, 16) and image.mean() > 0
 
