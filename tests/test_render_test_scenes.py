@@ -16,9 +16,8 @@ UnreachableContentError naming that content, alone and nested in ``moment``.
 Never a crash, never a silently biased image. bayesian_hemisphere is biased
 by design (facts ``unbiased=False``): it is held to render-or-refuse only.
 
-Default run: every (scene, estimator) pair renders or refuses; agreement for
-a subset that has every scene and every unbiased estimator. ``-m slow``: the
-agreement of every pair that renders.
+The whole cross product runs in the default run: under a minute on 2 cores
+with an empty Dr.Jit kernel cache (7 estimators × 6 scenes).
 """
 
 from __future__ import annotations
@@ -67,6 +66,11 @@ SCENE = """<scene version="3.0.0">
 </scene>
 """
 
+#: The camera looks down on the floor: every pixel sees the floor or the
+#: sphere. (A pixel that catches a sliver of a far floor corner, lit by the
+#: small area light, is a rare event for a hemisphere estimator: in 16
+#: renders it sees none, `path` sees it every time by emitter sampling, and
+#: the test rejected a correct cosine_hemisphere at p = 5e-7.)
 SENSOR = """<scene version="3.0.0">
     <sensor type="perspective">
         <float name="fov" value="35"/>
@@ -213,6 +217,7 @@ NAMED = {
 
 
 def names(err, kind) -> bool:
+    """Does one line of ``err``'s message name the content of ``kind``?"""
     who, what = NAMED[kind]
     return any(who in line and what in line for line in str(err).splitlines())
 
@@ -328,6 +333,12 @@ def test_renders_or_refuses_naming_the_content(llvm, scene_files, scene, name):
 
 # ----------------------------------- Agreement -----------------------------------
 
+#: As test_stock_scenes: 16 renders of 64 spp per side. Measured 2026-12-01
+#: over 9 seed offsets (0, 1000, …, 8000) × the 28 pairs of
+#: :data:`AGREEING`: 6 of 252 correct comparisons rejected (2.4%), 5 of them
+#: on roughplastic_beckmann under the envmap (heavy tails of its glossy
+#: lobe), which agreed at 1024 renders per side. The seeds are fixed: the
+#: run is deterministic.
 SPP, RENDERS = 64, 16
 #: First seed of the estimator's renders; `path`'s start 10 000 later.
 FIRST_SEED = 0
@@ -346,6 +357,7 @@ def reference(path: str, depth: int) -> np.ndarray:
 
 
 def agreement(path: str, name: str) -> statistics.Comparison:
+    """The estimator's renders, alone, against `path`'s at the same depth."""
     depth = depth_of(name)
     scene = renders.load_scene(path, integrator=name, max_depth=depth)
     est = batch(scene, renders.make_integrator(name, {"max_depth": depth}), SPP, RENDERS,
@@ -357,33 +369,16 @@ def agreement(path: str, name: str) -> statistics.Comparison:
 AGREEING = [(scene, name) for scene in SCENES for name in EVERY
             if registry.facts(name).unbiased and renders_it(name, scene)]
 
-#: The default run's share: each scene once, each unbiased estimator once.
-QUICK = [("principled", "fibonacci_hemisphere"),
-         ("principled_spec_trans", "bsdf_sampling"),
-         ("roughplastic_beckmann", "uniform_hemisphere"),
-         ("roughplastic_ggx", "emitter_sampling"),
-         ("normalmap", "cosine_hemisphere"),
-         ("bumpmap", "mis")]
+
+def test_every_scene_and_every_unbiased_estimator_is_compared():
+    assert {s for s, _ in AGREEING} == set(SCENES)
+    assert {n for _, n in AGREEING} == {n for n in EVERY if registry.facts(n).unbiased}
 
 
-def test_the_quick_share_covers_every_scene_and_estimator():
-    assert set(QUICK) <= set(AGREEING)
-    assert {s for s, _ in QUICK} == set(SCENES)
-    assert {n for _, n in QUICK} == {n for n in EVERY if registry.facts(n).unbiased}
-
-
-@pytest.mark.parametrize("scene,name", QUICK)
+@pytest.mark.parametrize("scene,name", AGREEING)
 def test_agrees_with_path(llvm, scene_files, scene, name):
     """Rendered alone (the moment wrapper adds channels), per pixel
     (α = 0.01, Šidák) and pooled, at max_depth 3 (2 for the estimators of
     N directions)."""
-    result = agreement(scene_files[scene], name)
-    assert result.passed, result.summary()
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("scene,name", [p for p in AGREEING if p not in QUICK])
-def test_every_pair_agrees_with_path(llvm, scene_files, scene, name):
-    """The rest of :data:`AGREEING`, as :func:`test_agrees_with_path`."""
     result = agreement(scene_files[scene], name)
     assert result.passed, result.summary()
