@@ -264,6 +264,6 @@ def test_the_control_keeps_false_fails_at_alpha_and_the_power_on_a_twin():
 
 def test_a_replication_has_the_top_rungs_samples_in_more_renders():
     from mcillum.validation.stages import scene
-    assert scene.replication_budget(256, 8) == (64, 32)
-    assert scene.replication_budget(2, 8) == (1, 16)
-    assert scene.replication_budget(1, 8) == (1, 8)
+    assert scene.replication_budget(256, 8) == (128, 32)     # twice the samples
+    assert scene.replication_budget(2, 8) == (1, 32)
+    assert scene.replication_budget(1, 8) == (1, 16)

@@ -141,18 +141,23 @@ def convergence_fit(runs: list[RunStats], alpha: float = 0.05) -> Convergence:
                        passed=bool(hi < 0))
 
 
-#: A replication renders the top rung's samples in this many times K renders.
-REPLICATION_SPLIT = 4
+#: A replication renders this many times the samples of the top rung's K
+#: renders, in :data:`REPLICATION_RENDERS` × K renders.
+REPLICATION_SAMPLES = 2
+REPLICATION_RENDERS = 4
 
 
 def replication_budget(top: int, k: int) -> tuple[int, int]:
-    """(spp, renders) of a replication: the samples of K renders at the top
-    rung, in :data:`REPLICATION_SPLIT` × as many renders. The image-mean test
-    on K = 8 renders has 7 degrees of freedom and needs |t| > 5 at its level
-    (α/6); on 32 it needs 3.5: the same samples, a test with the power of
-    the first reading (docs/measurements.md, 2026-12-01)."""
-    split = max(1, min(REPLICATION_SPLIT, top))
-    return top // split, k * split
+    """(spp, renders) of a replication: :data:`REPLICATION_SAMPLES` × the
+    samples of K renders at the top rung, in :data:`REPLICATION_RENDERS` × K
+    renders. The image-mean test on K = 8 renders has 7 degrees of freedom
+    and needs |t| > 5 at its level (α/6), on 32 it needs 3.5; and a first
+    reading that rejected overstates the effect it saw (it was selected for
+    rejecting), so fresh renders with no more samples miss a real bias about
+    as often as not. Rendered only where a rejection counted: a correct
+    estimator rarely pays for it (docs/measurements.md, 2026-12-01)."""
+    renders = k * max(1, min(REPLICATION_RENDERS, top * REPLICATION_SAMPLES))
+    return max(1, top * REPLICATION_SAMPLES * k // renders), renders
 
 
 def replicate(ctx) -> None:
