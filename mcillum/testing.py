@@ -94,11 +94,13 @@ class Comparison:
 
     @property
     def failed(self) -> list[Check]:
-        return [c for c in self.checks if c.outcome == "fail"]
+        from .validation.results import having
+        return having(self.checks, "fail")
 
     @property
     def inconclusive(self) -> list[Check]:
-        return [c for c in self.checks if c.outcome == "inconclusive"]
+        from .validation.results import having
+        return having(self.checks, "inconclusive")
 
     @property
     def passed(self) -> bool:

@@ -22,6 +22,7 @@ from types import SimpleNamespace
 import pytest
 from mcillum.validation.results import Check
 from test_stock_scenes import write_scene
+from user_code import MY_INTEGRATOR
 
 from mcillum.errors import UsageError
 from mcillum.testing import (
@@ -33,35 +34,6 @@ from mcillum.testing import (
 )
 
 pytest_plugins = ["pytester"]
-
-#: A user's integrators: direct light by emitter sampling, and its broken twin.
-PLUGIN = '''
-import mitsuba as mi
-
-
-class MyDirect(mi.SamplingIntegrator):
-    def __init__(self, props):
-        super().__init__(props)
-        self.weight = props.get("weight", 1.0)
-
-    def sample(self, scene, sampler, ray, medium=None, active=True):
-        si = scene.ray_intersect(ray, active)
-        L = si.emitter(scene, active).eval(si, active)
-        hit = active & si.is_valid()
-        ds, w = scene.sample_emitter_direction(si, sampler.next_2d(hit), True, hit)
-        f = si.bsdf(ray).eval(mi.BSDFContext(), si, si.to_local(ds.d), hit)
-        return L + self.weight * w * f, si.is_valid(), []
-
-
-class MyDirectBroken(MyDirect):
-    def __init__(self, props):
-        super().__init__(props)
-        self.weight = 0.95          # every light sample 5 % too dark
-
-
-mi.register_integrator("my_direct", lambda props: MyDirect(props))
-mi.register_integrator("my_direct_broken", lambda props: MyDirectBroken(props))
-'''
 
 #: The film's $res: 32², reduced to the quick profile's 16² for the statistics.
 DEFINES = {"res": 32}
@@ -75,7 +47,7 @@ def user(tmp_path_factory):
     reference)."""
     root = tmp_path_factory.mktemp("user")
     plugin = root / "my_integrator.py"
-    plugin.write_text(PLUGIN)
+    plugin.write_text(MY_INTEGRATOR)
     scene = write_scene(root / "scene", params='<integer name="max_depth" value="2"/>')
     return SimpleNamespace(plugin=str(plugin), scene=scene, cache=str(root / "cache"))
 

@@ -16,7 +16,7 @@ Everything is re-exported here: ``results.load(run_dir)``, ``results.Check``.
 
 from .cases import (BatchTest, CaseReference, CaseResult, CaseRow, Percentiles,  # noqa: F401
                     SppToMatch, SunSplit, Sweep, SweepRow, TailNumbers)
-from .common import OUTCOMES, Check, ReferenceSummary  # noqa: F401
+from .common import OUTCOMES, Check, ReferenceSummary, having  # noqa: F401
 from .json_io import (SCHEMA_FILE, NoResultsError, ResultsError, from_json, load,  # noqa: F401
                       to_json, write_json)
 from .quadrature import BiasAtN, Calibration, EqualRays, Quadrature  # noqa: F401

@@ -49,6 +49,11 @@ class Check(Outcome):
         self.passed = self.outcome != "fail"
 
 
+def having(checks, outcome: str) -> list[Check]:
+    """The checks of ``checks`` whose outcome is ``outcome``."""
+    return [c for c in checks if c.outcome == outcome]
+
+
 @dataclass(kw_only=True)
 class ReferenceSummary:
     """A `path` reference as the results record it: its samples, passes,

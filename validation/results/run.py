@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from .cases import CaseResult
-from .common import OUTCOMES, Check
+from .common import OUTCOMES, Check, having
 from .scene import SceneResult
 
 SCHEMA = "mcillum.results"
@@ -68,11 +68,11 @@ class Results:
 
     @property
     def failed(self) -> list[Check]:
-        return [c for c in self.checks if c.outcome == "fail"]
+        return having(self.checks, "fail")
 
     @property
     def inconclusive(self) -> list[Check]:
-        return [c for c in self.checks if c.outcome == "inconclusive"]
+        return having(self.checks, "inconclusive")
 
     def counts(self) -> dict[str, int]:
         """How many checks had each outcome."""
