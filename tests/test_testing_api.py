@@ -35,7 +35,7 @@ from mcillum.testing import (
 
 pytest_plugins = ["pytester"]
 
-#: The film's $res: 32², reduced to the quick profile's 16² for the statistics.
+#: The film's $res: 32², reduced to the quick profile's 24² for the statistics.
 DEFINES = {"res": 32}
 
 
@@ -68,7 +68,7 @@ def test_a_correct_integrator_passes_with_the_reference_rendered(user, tmp_path)
     assert c.reference_checks, "path was not rendered beside the integrator"
     assert c.report == str(tmp_path / "report" / "index.html") and os.path.isfile(c.report)
     assert c.images == [str(tmp_path / "images" / "scene")]
-    assert any("statistics at 16×16" in n for n in c.notes), c.notes
+    assert any("statistics at 24×24" in n for n in c.notes), c.notes
 
 
 def test_the_broken_twin_fails_naming_the_check_images_and_report(user, tmp_path):
