@@ -279,3 +279,14 @@ def test_a_profile_file_names_the_plugin_the_estimators_and_the_scene(llvm, tmp_
     (result,) = data["scenes"]
     assert result["name"] == "scene" and result["res"] == 12
     assert [e["name"] for e in result["estimators"]] == ["my_direct", "path"]
+
+
+def test_validate_accepts_every_estimator_by_name_before_it_runs(llvm, tmp_path, capsys,
+                                                                 monkeypatch):
+    """Names are checked with each integrator's defaults: the estimators of
+    N directions take no max_depth −1, and must still be accepted."""
+    def stop(*args, **kwargs):
+        raise RuntimeError("reached the pipeline")
+    monkeypatch.setattr(pipeline, "validate", stop)
+    code = cli.main(["validate", "--estimators", *registry.names(), "--out", str(tmp_path)])
+    assert code == 1 and "reached the pipeline" in capsys.readouterr().err

@@ -288,8 +288,8 @@ def _validate(args) -> int:
     _load_plugins(plugins, variant)
     estimators = args.estimators and list(dict.fromkeys([*args.estimators,
                                                          registry.REFERENCE]))
-    for name in estimators or []:
-        renders.make_taking(name, {"max_depth": -1})
+    for name in estimators or []:          # (unknown names: a usage error, now)
+        renders.make_integrator(name, {})
     settings = {"max_depth": args.max_depth, "rr_depth": args.rr_depth,
                 "hide_emitters": None if args.hide_emitters is None
                 else args.hide_emitters == "true"}
