@@ -150,7 +150,8 @@ def validate(profile_name="quick", scene_names=None, estimators=None,
     cases_estimators = list(dict.fromkeys([*estimators, registry.REFERENCE]))
     names = list(scene_names or [])
     bundled = [n for n in names if not scenes.is_path(n)]
-    files_given = [n for n in names if scenes.is_path(n)] if names else profile.scene_files
+    files_given = ([n for n in names if scenes.is_path(n)] if names else profile.scene_files) \
+        if "scenes" in groups else []
     user = [user_scenes.scene_run(profile, p, defines=defines, settings=settings, res=res,
                                   label=label)
             for p, label in zip(*_user_scene_labels(files_given))]
