@@ -143,7 +143,7 @@ def compare(scene, integrator: str, *, reference: str = REFERENCE,
     (:class:`~mcillum.errors.UserError`).
     """
     from .validation import pipeline
-    from .validation.plan import profile_files, scenes
+    from .validation.plan import profiles, scenes
     from .validation.results import layout
 
     if reference != REFERENCE:
@@ -151,7 +151,7 @@ def compare(scene, integrator: str, *, reference: str = REFERENCE,
                          f"Mitsuba's path tracer ('{REFERENCE}'); to compare '{reference}' "
                          f"with it, pass it as the integrator")
     plan = profile if not isinstance(profile, (str, os.PathLike)) else \
-        profile_files.resolve(profile)
+        profiles.resolve(profile)
     scene = os.fspath(scene)
     if isinstance(plugins, (str, os.PathLike)):     # one file, not its characters
         plugins = [plugins]

@@ -296,3 +296,13 @@ def test_a_toml_syntax_error_names_the_file_and_line(tmp_path):
     message = str(err.value)
     assert message.startswith(f"{path}: line 3, column "), message
     assert "not valid TOML" in message
+
+
+def test_a_bundled_name_resolves_to_the_profile_the_run_holds(monkeypatch, tmp_path):
+    """`--profile quick` is profiles.PROFILES["quick"] (read once; a test or
+    a driver may replace it), a path is read as a file."""
+    tiny = dataclasses.replace(profiles.QUICK, reference_max_seconds=1.0)
+    monkeypatch.setitem(profiles.PROFILES, "quick", tiny)
+    assert profiles.resolve("quick") is tiny
+    (tmp_path / "mine.toml").write_text('name = "mine"\n')
+    assert profiles.resolve(str(tmp_path / "mine.toml")).name == "mine"

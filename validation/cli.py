@@ -256,7 +256,7 @@ def _validate(args) -> int:
     # commands do not need)
     from . import pipeline
 
-    profile = _profile(args.profile)
+    profile = profiles.resolve(args.profile)
     names = [*args.scene, *(args.scenes or [])]
     profile.check_scenes([n for n in names if not scenes.is_path(n)])
     for name in names:
@@ -306,12 +306,6 @@ def _validate(args) -> int:
     print(f"report: {layout.report_html(args.out)}")
     ok = out.passed and not (args.strict and out.inconclusive)
     return EXIT_OK if ok else EXIT_FAILED
-
-
-def _profile(spec: str):
-    """A bundled profile by name or a profile file (plan/profile_files.py)."""
-    from .plan import profile_files
-    return profile_files.resolve(spec)
 
 
 def _load_plugins(specs, variant: str) -> list:

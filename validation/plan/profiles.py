@@ -21,7 +21,7 @@ from .plans import (
 )
 
 __all__ = ["FULL", "GEOMETRY", "GROUPS", "PROFILES", "QUICK", "Display", "FailureCase",
-           "Profile", "SceneRun", "UserScenes", "scaled_film"]
+           "Profile", "SceneRun", "UserScenes", "resolve", "scaled_film"]
 
 #: The two groups of a profile: scene comparisons and the failures group.
 GROUPS = ("scenes", "failures")
@@ -33,3 +33,12 @@ QUICK = profile_files.bundled("quick")
 FULL = profile_files.bundled("full")
 
 PROFILES = {p.name: p for p in (QUICK, FULL)}
+
+
+def resolve(spec) -> Profile:
+    """A bundled profile by name (from :data:`PROFILES`, read once), else
+    the profile file at path ``spec`` (profile_files.resolve, which raises
+    UsageError for neither)."""
+    if str(spec) in PROFILES:
+        return PROFILES[str(spec)]
+    return profile_files.resolve(spec)
