@@ -290,3 +290,35 @@ def test_validate_accepts_every_estimator_by_name_before_it_runs(llvm, tmp_path,
     monkeypatch.setattr(pipeline, "validate", stop)
     code = cli.main(["validate", "--estimators", *registry.names(), "--out", str(tmp_path)])
     assert code == 1 and "reached the pipeline" in capsys.readouterr().err
+
+
+def test_includes_are_inlined_in_order(tmp_path):
+    """Two includes in a row: the second one's elements follow the first's
+    (a BSDF defined in one and referenced by id in the next must stay
+    defined first)."""
+    (tmp_path / "a.xml").write_text('<scene version="3.0.0"><bsdf type="diffuse" id="one"/>'
+                                    '<bsdf type="diffuse" id="two"/></scene>')
+    (tmp_path / "b.xml").write_text('<scene version="3.0.0"><shape type="sphere">'
+                                    '<ref id="one"/></shape></scene>')
+    scene = tmp_path / "s.xml"
+    scene.write_text('<scene version="3.0.0"><include filename="a.xml"/>'
+                     '<include filename="b.xml"/></scene>')
+    root, folders = scene_files.inlined(str(scene))
+    assert [c.tag for c in root] == ["bsdf", "bsdf", "shape"]
+    assert folders == [str(tmp_path)]
+
+
+def test_files_found_through_path_belong_to_the_scene(llvm, tmp_path):
+    """A texture and a mesh found through the scene's <path> folder are the
+    scene's files: they travel to Ray workers, and a changed texture makes a
+    new reference cache key (the reference is rendered again)."""
+    from mcillum.validation.run import references
+    path = write_scene(tmp_path, params=DIRECT)
+    found = scenes.referenced_files(path, {})
+    assert str(tmp_path / "common" / "textures" / "roughness.exr") in found
+    assert str(tmp_path / "common" / "meshes" / "tetra.obj") in found
+    before = references.cache_key(path, {}, {"max_depth": 2}, mi.variant(), film=(8, 8))
+    mi.Bitmap(np.full((4, 4, 1), 0.3, np.float32)).write(
+        str(tmp_path / "common" / "textures" / "roughness.exr"))
+    assert references.cache_key(path, {}, {"max_depth": 2}, mi.variant(),
+                                film=(8, 8)) != before

@@ -21,16 +21,12 @@ Nothing here loads the scene; run/renders.py does.
 from __future__ import annotations
 
 import os
-import re
 import xml.etree.ElementTree as ET
 
 from . import scenes
 
 #: The integrator settings that define the image, and their XML tags.
 SETTINGS = {"max_depth": "integer", "rr_depth": "integer", "hide_emitters": "boolean"}
-
-_PLACEHOLDER = re.compile(r"\$([A-Za-z_]\w*)")
-
 
 class SceneFileError(ValueError):
     """The scene file cannot be read as the comparison needs it."""
@@ -43,10 +39,6 @@ def _parse(path: str) -> ET.Element:
         raise SceneFileError(f"cannot read scene {path}: {err}: fix the XML there") from None
     except OSError as err:
         raise SceneFileError(f"cannot read scene {path}: {err.strerror}") from None
-
-
-def _substitute(text: str, values: dict) -> str:
-    return _PLACEHOLDER.sub(lambda m: str(values.get(m.group(1), m.group(0))), text)
 
 
 def inlined(path: str, defines: dict | None = None) -> tuple[ET.Element, list[str]]:
@@ -66,36 +58,32 @@ def inlined(path: str, defines: dict | None = None) -> tuple[ET.Element, list[st
         here = os.path.dirname(file)
         if here not in folders:
             folders.append(here)
-        local = {**scenes.defaults(file), **params}
+        local = scenes.parameters(file, params)
         for parent in list(root.iter()):
-            for i, child in enumerate(list(parent)):
+            for child in list(parent):
                 if child.tag == "path":
-                    folder = _substitute(child.get("value", ""), local)
+                    folder = scenes.substitute(child.get("value", ""), local)
                     folder = folder if os.path.isabs(folder) else os.path.join(here, folder)
                     if folder not in folders:
                         folders.append(folder)
                 if child.tag != "include":
                     continue
-                name = _substitute(child.get("filename", ""), local)
-                target = _find(name, [here, *folders])
+                name = scenes.substitute(child.get("filename", ""), local)
+                target = scenes.find(name, [here, *folders])
                 if target is None:
                     raise SceneFileError(f"{file}: <include filename=\"{name}\"> not found "
                                          f"(looked in {', '.join([here, *folders])})")
                 included = visit(target, local, (*seen, file))
+                # (where it stands now: an include before it in this parent
+                # has put its own children in its place)
+                at = list(parent).index(child)
                 parent.remove(child)
                 for j, grand in enumerate(list(included)):
-                    parent.insert(i + j, grand)
+                    parent.insert(at + j, grand)
         return root
 
     root = visit(path, {k: str(v) for k, v in (defines or {}).items()}, ())
     return root, folders
-
-
-def _find(name: str, folders) -> str | None:
-    if os.path.isabs(name):
-        return name if os.path.isfile(name) else None
-    return next((os.path.join(f, name) for f in folders
-                 if os.path.isfile(os.path.join(f, name))), None)
 
 
 # ------------------------------ Integrator settings ------------------------------
@@ -106,7 +94,7 @@ def integrator_settings(path: str, defines: dict | None = None) -> tuple[dict, l
     e.g. ``['moment']``). A scene without an ``<integrator>`` sets none
     (Mitsuba then renders with ``path``'s defaults)."""
     root, _ = inlined(path, defines)
-    values = {**scenes.defaults(path), **{k: str(v) for k, v in (defines or {}).items()}}
+    values = scenes.parameters(path, defines)
     integrator = root.find("integrator")
     wrappers: list[str] = []
     settings: dict = {}
@@ -117,7 +105,7 @@ def integrator_settings(path: str, defines: dict | None = None) -> tuple[dict, l
             settings = found
         if inner is None:
             break
-        wrappers.append(_substitute(integrator.get("type", "?"), values))
+        wrappers.append(scenes.substitute(integrator.get("type", "?"), values))
         integrator = inner
     return settings, wrappers
 
@@ -128,7 +116,7 @@ def _settings_of(element, values: dict, path: str) -> dict:
         name = child.get("name")
         if name not in SETTINGS:
             continue
-        text = _substitute(child.get("value", ""), values)
+        text = scenes.substitute(child.get("value", ""), values)
         try:
             out[name] = (text.strip().lower() == "true") if SETTINGS[name] == "boolean" \
                 else int(text)
@@ -151,12 +139,12 @@ def film_size(path: str, defines: dict | None = None) -> tuple[int, int]:
     where it gives none. Raises :class:`SceneFileError` for a size that is
     not a positive integer."""
     root, _ = inlined(path, defines)
-    values = {**scenes.defaults(path), **{k: str(v) for k, v in (defines or {}).items()}}
+    values = scenes.parameters(path, defines)
     film = root.find("sensor/film")
     size = list(DEFAULT_FILM)
     for child in (film if film is not None else []):
         if child.get("name") in ("width", "height"):
-            text = _substitute(child.get("value", ""), values)
+            text = scenes.substitute(child.get("value", ""), values)
             try:
                 value = int(text)
             except ValueError:

@@ -56,14 +56,26 @@ def defaults(path: str) -> dict[str, str]:
 _PLACEHOLDER = re.compile(r"\$([A-Za-z_]\w*)")
 
 
+def parameters(path: str, defines: dict | None = None) -> dict[str, str]:
+    """The $-parameters of the XML file ``path`` as it is loaded: its
+    defaults, then ``defines``, as strings."""
+    return {**defaults(path), **{k: str(v) for k, v in (defines or {}).items()}}
+
+
+def substitute(text: str, values: dict) -> str:
+    """``text`` with each ``$name`` that ``values`` holds replaced by its
+    value (others are left as they are)."""
+    return _PLACEHOLDER.sub(lambda m: str(values.get(m.group(1), m.group(0))), text)
+
+
 def expand(path: str, text: str, defines: dict) -> str:
     """``text`` (a scene's summary) with each ``$name`` replaced by the value
     it is rendered with: ``defines``, else the file's default. A map given as
     a file shows as its name (``sunrise``, not a cache path)."""
-    values = {**defaults(path), **{k: str(v) for k, v in defines.items()}}
+    values = parameters(path, defines)
     if "envmap" in values:
         values["envmap"] = os.path.splitext(os.path.basename(values["envmap"]))[0]
-    return _PLACEHOLDER.sub(lambda m: values.get(m.group(1), m.group(0)), text)
+    return substitute(text, values)
 
 
 def _contains(header: str, path: str) -> tuple[str, ...]:
@@ -130,14 +142,27 @@ def path(name: str) -> str:
 # ------------------------------ Referenced files --------------------------------
 
 _FILE_REF = re.compile(r'(?:name="filename"\s+value|<include\s+filename)="([^"]*)"')
+_PATH_REF = re.compile(r'<path\s+value="([^"]*)"')
+
+
+def find(name: str, folders) -> str | None:
+    """The file ``name`` refers to: itself if absolute, else the first of
+    ``folders`` that holds it; None where none does."""
+    if os.path.isabs(name):
+        return name if os.path.isfile(name) else None
+    return next((os.path.join(f, name) for f in folders
+                 if os.path.isfile(os.path.join(f, name))), None)
 
 
 def referenced_files(scene_path: str, defines: dict) -> list[str]:
     """The scene file and every file it references, recursively, after
-    substituting ``$``-parameters (defaults from the file, then ``defines``)."""
+    substituting ``$``-parameters (defaults from the file, then ``defines``).
+    A relative reference is found as Mitsuba finds it: beside the file that
+    makes it, else in a folder a ``<path>`` added (stock scenes keep their
+    meshes and textures in a shared folder found that way)."""
     seen: list[str] = []
 
-    def visit(path: str, params: dict):
+    def visit(path: str, params: dict, folders: list[str]):
         path = os.path.abspath(path)
         if path in seen:
             return
@@ -146,13 +171,14 @@ def referenced_files(scene_path: str, defines: dict) -> list[str]:
             return
         with open(path, encoding="utf-8") as f:
             text = f.read()
-        local = {**defaults(path), **params}
+        local = parameters(path, params)
+        here = os.path.dirname(path)
+        folders = [here, *folders, *(os.path.join(here, substitute(p, local))
+                                     for p in _PATH_REF.findall(text))]
         for ref in _FILE_REF.findall(text):
-            for k, v in sorted(local.items(), key=lambda kv: -len(kv[0])):
-                ref = ref.replace(f"${k}", str(v))
-            target = ref if os.path.isabs(ref) else os.path.join(os.path.dirname(path), ref)
-            if os.path.isfile(target):
-                visit(target, local)
+            target = find(substitute(ref, local), folders)
+            if target is not None:
+                visit(target, local, folders)
 
-    visit(scene_path, {k: str(v) for k, v in defines.items()})
+    visit(scene_path, {k: str(v) for k, v in defines.items()}, [])
     return seen
