@@ -38,6 +38,13 @@ META_PREFIX = "mcillum."
 _CHANNELS = {1: "Y", 3: "RGB", 4: "RGBA"}
 
 
+def names_a_file(text: str, suffix: str) -> bool:
+    """Does ``text``, given where a name or a file may stand (a scene, a
+    plugin, a profile), name a file: it ends in ``suffix`` or holds a
+    folder?"""
+    return text.endswith(suffix) or os.sep in text or "/" in text
+
+
 def cache_dir(*parts: str) -> str:
     """``$MCILLUM_CACHE`` (default ``~/.cache/mcillum``), joined with ``parts``."""
     root = os.environ.get("MCILLUM_CACHE") or os.path.join(

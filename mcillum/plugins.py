@@ -47,7 +47,7 @@ _imported: dict[str, tuple[str, str]] = {}
 
 def is_file(spec: str) -> bool:
     """Does ``spec`` name a Python file rather than a dotted module?"""
-    return spec.endswith(".py") or os.sep in spec or "/" in spec
+    return files.names_a_file(spec, ".py")
 
 
 def load(spec: str, variant: str | None = None) -> Plugin:

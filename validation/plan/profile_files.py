@@ -35,6 +35,7 @@ import os
 import re
 import tomllib
 
+from mcillum import files
 from mcillum.errors import UsageError
 
 from .plans import Display, FailureCase, Profile, SceneRun, UserScenes
@@ -167,12 +168,15 @@ def _table(data, table: str | None, where: str) -> dict:
             for k, v in data.items()}
 
 
+def _absolute(entry: str, folder: str) -> str:
+    """A file's path in a profile file, made absolute against its ``folder``."""
+    return os.path.normpath(os.path.join(folder, os.path.expanduser(entry)))
+
+
 def _located(entry: str, folder: str, suffix: str) -> str:
     """``entry`` made absolute against ``folder`` where it is a file's path
-    (it holds '/' or ends in ``suffix``); a name stays a name."""
-    if "/" in entry or entry.endswith(suffix):
-        return os.path.normpath(os.path.join(folder, os.path.expanduser(entry)))
-    return entry
+    (files.names_a_file); a name stays a name."""
+    return _absolute(entry, folder) if files.names_a_file(entry, suffix) else entry
 
 
 def _unique(items, where: str) -> None:
@@ -227,8 +231,7 @@ def read(path) -> Profile:
     if "plugins" in top:
         top["plugins"] = tuple(_located(p, folder, ".py") for p in top["plugins"])
     if "scene_files" in top:
-        top["scene_files"] = tuple(os.path.normpath(os.path.join(folder, os.path.expanduser(p)))
-                                   for p in top["scene_files"])
+        top["scene_files"] = tuple(_absolute(p, folder) for p in top["scene_files"])
         if user is None:
             raise UsageError(f"{name}: scene_files needs a [user_scenes] table (how a scene "
                              "file is compared: res, ladder, renders)")
@@ -257,6 +260,6 @@ def resolve(name_or_path) -> Profile:
     text = os.fspath(name_or_path)
     if text in BUNDLED:
         return bundled(text)
-    if text.endswith(".toml") or "/" in text or os.sep in text:
+    if files.names_a_file(text, ".toml"):
         return read(text)
     raise _unknown(text)

@@ -15,6 +15,7 @@ import os
 import re
 from dataclasses import dataclass, field
 
+from mcillum import files
 from mcillum.integrators.scene_checks import KINDS
 
 #: scenes/ beside the package's subfolders (in a checkout and when installed):
@@ -105,7 +106,7 @@ def index(directory: str = SCENES_DIR) -> dict[str, SceneInfo]:
 def is_path(name: str) -> bool:
     """Does ``name`` (a command-line scene) name a file rather than a bundled
     scene? An XML file name or anything with a folder in it does."""
-    return name.endswith(".xml") or os.sep in name or "/" in name
+    return files.names_a_file(name, ".xml")
 
 
 def info(name: str) -> SceneInfo:
