@@ -154,6 +154,7 @@ def bias_outcome(c, events: np.ndarray, renders: int, samples: int,
     itself ``is_control``) (the rules above)."""
     rejected = c.pixel_p < c.alpha_pixel
     up, down = rejected & (c.pixel_t > 0), rejected & (c.pixel_t < 0)
+    all_up, all_down = int(up.sum()), int(down.sum())        # as recorded
     shared = np.zeros_like(up)
     if is_control:
         shared = up | down
@@ -175,9 +176,8 @@ def bias_outcome(c, events: np.ndarray, renders: int, samples: int,
     pixels = (up & ~ref_tail) | (down if not heavy else np.zeros_like(down))
 
     def decide(outcome, reason, needed=None):
-        return Decision(outcome=outcome, reason=reason, rejected_up=n_up + int((shared & (
-                            c.pixel_t > 0)).sum()), rejected_down=n_down + int((shared & (
-                            c.pixel_t < 0)).sum()),
+        return Decision(outcome=outcome, reason=reason, rejected_up=all_up,
+                        rejected_down=all_down,
                         samples_needed=needed, tail_events=total, pixels=pixels,
                         pooled=high | low_counted, counted_up=bool(up_counted or pooled_up))
 
