@@ -35,6 +35,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from .errors import UsageError
+from .integrators import registry
 
 if TYPE_CHECKING:
     from .validation.plan.profiles import Profile
@@ -42,8 +43,8 @@ if TYPE_CHECKING:
 
 __all__ = ["Comparison", "Inconclusive", "assert_passes", "assert_unbiased", "compare"]
 
-#: The reference of every comparison (integrators/registry.py: ``REFERENCE``).
-REFERENCE = "path"
+#: The reference of every comparison (Mitsuba's path tracer).
+REFERENCE = registry.REFERENCE
 
 
 class Inconclusive(AssertionError):
@@ -216,8 +217,8 @@ def _judge(c: Comparison, checks: list, what: str, strict: bool) -> None:
         notes = "; ".join(c.notes) or "none"
         raise AssertionError(f"no check of '{c.integrator}' ran on {_where(c)}: it rendered "
                              f"nothing there (the run's notes: {notes})\n{_paths(c)}")
-    failed = [k for k in checks if k.outcome == "fail"]
-    unsure = [k for k in checks if k.outcome == "inconclusive"]
+    from .validation.results import having
+    failed, unsure = having(checks, "fail"), having(checks, "inconclusive")
     if failed or (unsure and strict):
         head = (f"'{c.integrator}' failed {len(failed)} of {len(checks)} {what} against "
                 f"'{c.reference}' on {_where(c)}:" if failed else

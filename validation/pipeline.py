@@ -122,7 +122,8 @@ def validate(profile_name="quick", scene_names=None, estimators=None,
              ray_address: str | None = None, ray_workers: int | None = None,
              plugins=(), settings: dict | None = None, defines: dict | None = None,
              res: int | None = None) -> results.Results:
-    """Run a profile (a name, or a :class:`~.plan.profiles.Profile`): its
+    """Run a profile (a bundled name, a profile file's path, or a
+    :class:`~.plan.profiles.Profile`): its
     scene comparisons and/or its failures group (``groups``), filtered by
     scene name; write the results and the report. ``scene_names`` may hold
     scene files' paths: each is compared by the profile's ``user_scenes``
@@ -141,7 +142,7 @@ def validate(profile_name="quick", scene_names=None, estimators=None,
     to do (finished renders are kept and reused by the next run).
     """
     profile = (profile_name if isinstance(profile_name, profiles.Profile)
-               else profiles.PROFILES[profile_name])
+               else profiles.resolve(profile_name))
     variant = renders.set_variant(variant)
     loaded = [mcillum_plugins.load(p, variant)
               for p in dict.fromkeys([*profile.plugins, *plugins])]
@@ -154,7 +155,7 @@ def validate(profile_name="quick", scene_names=None, estimators=None,
         if "scenes" in groups else []
     user = [user_scenes.scene_run(profile, p, defines=defines, settings=settings, res=res,
                                   label=label)
-            for p, label in zip(*_user_scene_labels(files_given))]
+            for p, label in zip(files_given, _user_scene_labels(files_given))]
     notes = {plan.id: said for plan, said in user}
     plans = [r for r in profile.runs if "scenes" in groups
              and (not names or r.scene in bundled)] + [plan for plan, _ in user]
@@ -241,13 +242,12 @@ def start_executor(kind: str = "local", address: str | None = None,
     raise ValueError(f"unknown executor '{kind}': use one of {', '.join(executors.KINDS)}")
 
 
-def _user_scene_labels(paths) -> tuple[list[str], list[str]]:
-    """(paths, a label for each): the file's stem, or its folder and stem
-    where two stems are alike (Mitsuba's test scenes are all scene.xml)."""
+def _user_scene_labels(paths) -> list[str]:
+    """A label for each scene file: its stem, or its folder and stem where
+    two stems are alike (Mitsuba's test scenes are all scene.xml)."""
     stems = [os.path.splitext(os.path.basename(p))[0] for p in paths]
-    labels = [f"{os.path.basename(os.path.dirname(os.path.abspath(p)))}_{s}"
-              if stems.count(s) > 1 else s for p, s in zip(paths, stems)]
-    return list(paths), labels
+    return [f"{os.path.basename(os.path.dirname(os.path.abspath(p)))}_{s}"
+            if stems.count(s) > 1 else s for p, s in zip(paths, stems)]
 
 
 def _machine() -> dict:
