@@ -94,12 +94,17 @@ def ensure(plugin: Plugin, variant: str | None = None) -> str:
     return path
 
 
-def _same(path: str, sha256: str) -> bool:
+def sha256_of(path: str) -> str | None:
+    """The sha256 of the file at ``path``; None where it cannot be read."""
     try:
         with open(path, "rb") as f:
-            return hashlib.sha256(f.read()).hexdigest() == sha256
+            return hashlib.sha256(f.read()).hexdigest()
     except OSError:
-        return False
+        return None
+
+
+def _same(path: str, sha256: str) -> bool:
+    return sha256_of(path) == sha256
 
 
 def _import(plugin: Plugin, path: str, variant: str | None) -> None:

@@ -77,7 +77,8 @@ class RenderWorker:
         renders.set_variant(variant)
         # a user's integrators, the driver's bytes (from its own file where
         # this node has the same, else a copy in this node's cache)
-        self.plugins = {p.spec: mcillum_plugins.ensure(p, variant) for p in plugins}
+        self.plugins = {p.spec: mcillum_plugins.sha256_of(mcillum_plugins.ensure(p, variant))
+                        for p in plugins}
         self.workshop = jobs_.Workshop()
         self.node = f"{node_name()} ({ray.util.get_node_ip_address()})"
 
@@ -103,10 +104,10 @@ class RenderWorker:
             raise cause from None
 
 
-def _versions(plugin_files: dict | None = None) -> dict:
+def _versions(plugins: dict | None = None) -> dict:
     """Versions, a hash of mcillum's own code (two checkouts of one
     version may differ; scene files travel with the jobs), and the hash of
-    each user's plugin file imported (``plugin_files``: spec → path)."""
+    each user's plugin file imported (``plugins``: spec → sha256)."""
     import importlib
 
     import drjit as dr
@@ -121,13 +122,9 @@ def _versions(plugin_files: dict | None = None) -> dict:
                 with open(path, "rb") as f:
                     h.update(f"{package}/{os.path.relpath(path, folder)}".encode()
                              + hashlib.sha256(f.read()).digest())
-    plugins = {}
-    for spec, path in (plugin_files or {}).items():
-        with open(path, "rb") as f:
-            plugins[f"plugin {spec}"] = hashlib.sha256(f.read()).hexdigest()[:16]
     return {"mitsuba": mi.__version__, "drjit": dr.__version__,
             "python": platform.python_version(), "mcillum code": h.hexdigest()[:16],
-            **plugins}
+            **{f"plugin {spec}": sha[:16] for spec, sha in (plugins or {}).items()}}
 
 
 class RayExecutor(Executor):
@@ -181,7 +178,7 @@ class RayExecutor(Executor):
                            **options)(RenderWorker)
         self.workers = [actor.remote(variant, self.plugins) for _ in range(n)]
         self.parallelism = n
-        mine = _versions({p.spec: p.path for p in self.plugins})
+        mine = _versions({p.spec: p.sha256 for p in self.plugins})
         for theirs, node in _get([w.versions.remote() for w in self.workers]):
             differ = {k: (v, theirs.get(k)) for k, v in mine.items() if theirs.get(k) != v}
             if differ:
