@@ -28,6 +28,7 @@ import mcillum  # noqa: F401
 import drjit as dr
 import mitsuba as mi
 
+from mcillum.integrators import registry
 from mcillum.validation.plan import scenes
 
 from mcillum.validation.run import renders
@@ -267,7 +268,7 @@ class _Reference:
 def test_calibration_verdict_follows_the_error(scale, verdict):
     """Renders scattered by a known std around the reference: a predicted std
     equal to it is calibrated; one 10× too small is over-confident, 10× too
-    large under-confident (the rule of checks.evidence.CALIBRATED)."""
+    large under-confident (the rule of checks.convergence.CALIBRATED)."""
     from mcillum.validation.stages import quadrature
     rng = np.random.default_rng(5)
     ref = np.full((8, 8, 3), 2.0)
@@ -309,6 +310,32 @@ def test_bayesian_bias_shrinks_with_n(llvm):
         rows[n] = quadrature._bias(_stack(batch(scene, integ, 16, 8)), ref, n)
     lo, hi = rows[16], rows[256]
     assert lo.rms_bias - hi.rms_bias > 3 * np.hypot(lo.rms_bias_se, hi.rms_bias_se), rows
+
+
+def test_bayesian_weight_twin_fails_and_the_estimator_passes_the_bias_limit(llvm):
+    """bias_shrinks tests the limit, not only the trend: the Bayesian
+    estimator's bias at N = 256 is within convergence.BIAS_LIMIT (pass); its
+    twin with every weight × 0.95 keeps about 5 % (fail), though its bias
+    falls from N = 16 to 256 too (the old rule passed it)."""
+    from mcillum.validation.checks import convergence
+    from mcillum.validation.stages import quadrature
+    scene = renders.load_scene(scenes.path("lone_sphere"), res=8, envmap="sg")
+    path = batch(scene, renders.make_integrator("path", {"max_depth": 2}), 4096, 8,
+                 first_seed=REFERENCE_SEED)
+    ref = _Reference(path.mean(axis=0), path.var(axis=0, ddof=1) / len(path))
+    twin = twins.set_weight_class("bayesian_hemisphere", 0.95)
+    registry.register(twin)
+    try:
+        got = {}
+        for name in ("bayesian_hemisphere", twin.plugin_name):
+            rows = [quadrature._bias(_stack(batch(scene, renders.make_integrator(
+                name, {"directions": n, "length_scale": 0.5}), 16, 8)), ref, n)
+                for n in (16, 256)]
+            got[name] = convergence.bias_limit_outcome(*rows)[0], rows
+    finally:
+        registry.unregister(twin.plugin_name)
+    assert got["bayesian_hemisphere"][0] == "pass", got
+    assert got[twin.plugin_name][0] == "fail", got
 
 
 def test_fibonacci_glossy_set_lowers_the_variance(llvm):

@@ -3,9 +3,11 @@ opt-in biased image, the glossy sweep, and no NaN/Inf/negative radiance from
 any estimator in any failure case across 64 seeds.
 
 Verdicts use the batch-means test of validation/stats/statistics.py at family-wise
-α = 0.01 (Šidák over pixels × channels, plus the image-mean test), a rejection
-counting only if it replicates in fresh renders (checks/evidence.py). The same case run
-with a cosine estimator whose pdf is 5 % off must come out "biased".
+α = 0.01 (Šidák over pixels × channels, plus the image-mean test), read by the
+rules of evidence (checks/evidence.py) and continued on fresh batches until it
+decides or its budget is spent (stages/sequential.py; α spent over the looks);
+a rejection that counts is confirmed on a fresh batch. The same case run with a
+cosine estimator whose pdf is 5 % off, or clamped, must come out "biased".
 """
 
 import numpy as np
@@ -19,11 +21,11 @@ from mcillum.validation import pipeline
 from mcillum.validation.plan import profiles, seeds
 from mcillum.validation.run import renders
 from mcillum.validation.stats import statistics, tails
-from mcillum.validation.checks.evidence import FAILING, HEAVY, NOT_REPLICATED
+from mcillum.validation.checks.evidence import FAILING, HEAVY
 from mcillum.validation.stages.context import Run
 
 from conftest import ALL_ESTIMATORS, SCENES
-from twins import clamped_class, path_at_depth_class, wrong_pdf_class
+from twins import clamped_class, path_at_depth_class, radiance_clamp_class, wrong_pdf_class
 
 # ------------------------------ Definitions ---------------------------------
 
@@ -102,10 +104,13 @@ def path_mean(case) -> np.ndarray:
 
 def run_with_controls(run_case, case):
     """The case with cosine and uniform (correct, heavy-tailed), mis and path
-    (correct), and the three negative controls: cosine with its pdf 5 % too
-    high, cosine clamped at 10× path's pixel value, path at max_depth 2."""
+    (correct), and the negative controls: cosine with its pdf 5 % too high,
+    cosine clamped at 10× path's pixel value (no firefly left), cosine with
+    every sample clamped at radiance 100 and 1000 (fireflies left: the bias
+    a renderer's clamp adds), path at max_depth 2."""
     controls = [wrong_pdf_class("cosine_hemisphere", 1.05),
-                clamped_class(path_mean(case)), path_at_depth_class(2)]
+                clamped_class(path_mean(case)), radiance_clamp_class(100.0),
+                radiance_clamp_class(1000.0), path_at_depth_class(2)]
     for c in controls:
         registry.register(c)
     try:
@@ -117,27 +122,30 @@ def run_with_controls(run_case, case):
     return rows, checks, [c.plugin_name for c in controls]
 
 
-def test_sun_case_says_inconclusive_for_correct_estimators_and_fails_the_controls(run_case):
-    """sun_sky, 8² px, 16 spp × 64 seeds (α = 0.01 per test, replication of
-    every rejection that counts): path and mis are fine; cosine and uniform
-    miss the sun (0.0002 sr) in most renders: darker where their renders
-    caught fireflies, so inconclusive, never biased. The three controls are
-    biased: the wrong pdf without the sun (where its rejection counts), the
-    clamp and the missing bounces with the sun (no firefly explains them)."""
+def test_sun_case_renders_on_until_it_decides_and_fails_the_controls(run_case):
+    """sun_sky, 8² px, 16 spp × 64 seeds, then the sequential test
+    (stages/sequential.py; α = 0.01 spent over the looks): path and mis are
+    fine; cosine misses the sun (0.0002 sr) in most renders and renders on
+    to its budget (1024× its first samples) without finding a bias, and
+    says what would decide. The controls are biased: the wrong pdf without
+    the sun, the clamps (with fireflies or without) and the missing bounces
+    with the sun."""
     rows, checks, controls = run_with_controls(run_case, QUICK["failures.heavy_tail.sun_sky"])
     assert rows["path"].verdict == "fine" and rows["mis"].verdict == "fine"
     cos = rows["cosine_hemisphere"]
-    assert cos.verdict == HEAVY
+    assert cos.verdict in (HEAVY, "heavy-tailed"), cos.verdict
     n = cos.numbers
-    assert n.test.outcome == "inconclusive" and n.test.rejected_pixels > 0
-    assert n.test.samples_needed > n.samples_per_pixel
-    assert n.sun.sunless_passed and n.sun.expected_sun_hits_per_pixel < 1
+    assert n.test.looks > 1 and n.test.samples_per_pixel > 100 * n.samples_per_pixel
+    if cos.verdict == HEAVY:
+        assert n.test.samples_needed > n.test.samples_per_pixel
     assert n.relmse.max > 100 * n.relmse.median            # heavy tail
     assert n.spp_to_match_path.spp > 16 * 10
-    assert rows["uniform_hemisphere"].verdict in (HEAVY, NOT_REPLICATED)
-    wrong, clamped, shallow = (rows[c] for c in controls)
+    assert rows["uniform_hemisphere"].verdict not in FAILING
+    wrong, clamped, clamp100, clamp1000, shallow = (rows[c] for c in controls)
     assert wrong.verdict == "biased" and wrong.numbers.sun.sunless_outcome == "fail"
     assert clamped.verdict == "biased" and clamped.numbers.test.tail_events == 0
+    for clamp in (clamp100, clamp1000):                     # fireflies do not excuse them
+        assert clamp.verdict == "biased" and clamp.numbers.test.tail_events > 0, clamp
     assert shallow.verdict == "biased" and shallow.numbers.test.replicated
     failed = {c.id for c in checks if c.outcome == "fail"}
     assert failed == {f"failures.heavy_tail.sun_sky/{c}/stable" for c in controls}
@@ -236,13 +244,14 @@ HARDEST = [QUICK["failures.heavy_tail.sun_sky"],
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed_set", [1, 2])
+@pytest.mark.parametrize("seed_set", [3, 4, 5])
 @pytest.mark.parametrize("case", HARDEST, ids=lambda c: c.label or c.scene)
 def test_no_correct_estimator_is_called_biased_on_the_hardest_cases(run_case, case, seed_set):
-    """False rejections on the hardest cases, with seed sets 1 and 2 (plan/
-    seeds.py; the profile uses set 0, and these two were used to tune the
-    rules): no shipped estimator is "biased" (each test at
-    α = 0.01 with replication: about α² per estimator if it held exactly)."""
+    """False fails on the hardest cases, with seed sets 3, 4 and 5 (plan/
+    seeds.py), which no rule was tuned on (the profile uses set 0; sets 1
+    and 2 tuned the rules before the sequential tests): no shipped
+    estimator is "biased" (each sequential test at α = 0.01 spent over its
+    looks, a fail confirmed on a fresh batch)."""
     seeds.use_set(seed_set)
     try:
         rows, checks, _ = run_case(case, [*ALL_ESTIMATORS, "path"])

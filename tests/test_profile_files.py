@@ -12,6 +12,7 @@ import os
 import pytest
 import tomllib
 from mcillum.validation.plan import profile_files, profiles
+from mcillum.validation.plan.plans import Sequential
 from mcillum.validation.plan.profiles import (
     Display,
     FailureCase,
@@ -55,8 +56,9 @@ def test_every_field_of_a_bundled_profile_is_what_its_file_says(name):
     profile = profiles.PROFILES[name]
     default = Display(**{k: _as_read(v) for k, v in raw["display"].items()})
     for key, value in raw.items():
-        if key not in ("display", "user_scenes", "scenes", "failures"):
+        if key not in ("display", "user_scenes", "scenes", "failures", "sequential"):
             assert getattr(profile, key) == _as_read(value), key
+    assert profile.sequential == Sequential(**raw["sequential"])
     assert profile.estimators is None and profile.plugins == ()
     assert profile.user_scenes == UserScenes(
         display=default, **{k: _as_read(v) for k, v in raw["user_scenes"].items()})

@@ -231,6 +231,22 @@ def clamped_class(reference: np.ndarray, base: str = "cosine_hemisphere",
     return Clamped
 
 
+def radiance_clamp_class(limit: float, base: str = "cosine_hemisphere"):
+    """``base`` with every sample's radiance clamped per channel at ``limit``
+    (a renderer's fixed firefly clamp): above the firefly threshold it
+    leaves fireflies, and it darkens wherever the sun is hit."""
+    cls = plugin_class(base)
+
+    class RadianceClamp(cls):
+        plugin_name = f"{base}_clamp_{limit:g}"
+
+        def sample(self, scene, sampler, ray, medium=None, active=True):
+            L, valid, aovs = super().sample(scene, sampler, ray, medium, active)
+            return dr.minimum(L, mi.Color3f(limit)), valid, aovs
+
+    return RadianceClamp
+
+
 def path_at_depth_class(depth: int = 2):
     """A biased reference: Mitsuba's ``path`` at ``max_depth`` ``depth``
     whatever the validation asks for (it reads and ignores the max_depth it is

@@ -9,7 +9,7 @@ comparison or a failure case measures) → **checks** (the verdicts) →
 Imports point down the table below: a module imports only modules of its
 own row or of rows beneath it, and never in a cycle. Two rows sit lower
 than the reading order says: the stages ask the checks' rules of evidence
-which rejections to test again, so checks sit below stages; and every layer
+whether to render on (sequential tests), so checks sit below stages; and every layer
 builds or reads records, so results sit near the bottom.
 tests/test_layout.py reads this table and fails on an import that breaks it.
 
@@ -19,7 +19,7 @@ Layers, top to bottom:
     validation.cli        the `mcillum` command: parses arguments, calls the library
     validation.pipeline   the orchestrator: stage lists, checks, results, report
     validation.report     the HTML page, its charts and its image parts
-    validation.stages     context; scene comparison, failure cases, speed, quadrature
+    validation.stages     context; scene comparison, failure cases, sequential tests, speed, quadrature
     validation.checks     the rules of evidence and every check
     validation.run        renders, jobs, stacks of K renders, references, executors, timing
     validation.stats      metrics, statistics, tails, costs: numbers, no Mitsuba

@@ -141,6 +141,11 @@ def _parser() -> argparse.ArgumentParser:
                    help="an independent repeat of the whole run, references included "
                         "(0…999, default 0): for measuring how often the tests reject "
                         "correct estimators")
+    v.add_argument("--budget", type=float, default=None, metavar="X",
+                   help="how far a check that cannot decide may render on: X times its "
+                        "first look's samples per pixel (default: the profile's "
+                        "[sequential] budgets); an inconclusive check says which budget "
+                        "would decide")
     v.add_argument("--strict", action="store_true",
                    help="exit 1 when a check is inconclusive, not only when one fails "
                         "(JUnit then reports inconclusive checks as failures, not skipped)")
@@ -272,6 +277,8 @@ def _validate(args) -> int:
         raise _Usage(f"--res must be >= 1, got {args.res}")
     if not 0 <= args.seed_set < 1000:
         raise _Usage(f"--seed-set must be in 0…999, got {args.seed_set}")
+    if args.budget is not None and not args.budget >= 1:
+        raise _Usage(f"--budget must be >= 1 (× a check's first samples), got {args.budget}")
     if args.executor != "ray" and (args.ray_address or args.ray_workers is not None):
         raise _Usage("--ray-address and --ray-workers need --executor ray")
     if args.ray_workers is not None and args.ray_workers < 1:
@@ -298,6 +305,7 @@ def _validate(args) -> int:
                             seed_set=args.seed_set, speed_stage=not args.no_speed,
                             executor=args.executor, ray_address=args.ray_address,
                             ray_workers=args.ray_workers, plugins=args.plugin,
+                            budget=args.budget,
                             settings=settings, defines=_assignments(args.define),
                             res=args.res)
     if args.junit:
@@ -305,6 +313,8 @@ def _validate(args) -> int:
     print(results.summary(out))
     print(f"report: {layout.report_html(args.out)}")
     ok = out.passed and not (args.strict and out.inconclusive)
+    print(f"{'PASSED' if ok else 'FAILED'}: {results.counts_line(out)}"
+          + (" (--strict: inconclusive fails)" if args.strict and out.inconclusive else ""))
     return EXIT_OK if ok else EXIT_FAILED
 
 

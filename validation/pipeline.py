@@ -5,7 +5,7 @@ For every scene of a profile and every case of its failures group, a
 below), then the checks decide (:mod:`.checks`):
 
     scene comparison   load → choose estimators → K renders per rung of an spp
-                       ladder → reference → measure → replicate what counts →
+                       ladder → reference → measure → settle (sequential) →
                        quadrature (estimators of N directions: equal rays, bias
                        against N, calibration) → release the scene → images;
                        checks; then the speed-and-images stage at the display
@@ -13,7 +13,7 @@ below), then the checks decide (:mod:`.checks`):
                        renders → reference → relMSE, efficiency, ranking, FLIP
                        → images
     failure case       load → refusals → K seeds → reference → tail numbers →
-                       bias test (replicated) → release → the sunless twin
+                       bias test (sequential) → release → the sunless twin
                        (a heavy-tail case on a map with a sun: the map without
                        it, through SUNLESS) → sun split; checks; evidence
     sweep              each parameter value: load → K seeds → reference →
@@ -51,7 +51,7 @@ from .stages.context import Context, Run
 from .stats import metrics, statistics
 
 SCENE = (common.load, common.choose_estimators, scene.render_ladder, common.build_reference,
-         scene.measure, scene.replicate, quadrature.measure, common.release, scene.save_images)
+         scene.measure, scene.settle, quadrature.measure, common.release, scene.save_images)
 SPEED = (speed.display, speed.time_costs, speed.render_budgets, speed.display_reference,
          speed.release_display, speed.measure_speed, speed.save_display)
 CASE = (common.load, cases.probe_refusals, cases.render_seeds, common.build_reference,
@@ -121,7 +121,7 @@ def validate(profile_name="quick", scene_names=None, estimators=None,
              speed_stage: bool = True, executor: str = "local",
              ray_address: str | None = None, ray_workers: int | None = None,
              plugins=(), settings: dict | None = None, defines: dict | None = None,
-             res: int | None = None) -> results.Results:
+             res: int | None = None, budget: float | None = None) -> results.Results:
     """Run a profile (a bundled name, a profile file's path, or a
     :class:`~.plan.profiles.Profile`): its
     scene comparisons and/or its failures group (``groups``), filtered by
@@ -132,6 +132,8 @@ def validate(profile_name="quick", scene_names=None, estimators=None,
     and ``res`` (the statistics film's longest side); no failure case runs
     for them. ``plugins`` (files or modules, with the profile's) are
     imported first, here and on every worker (mcillum/plugins.py).
+    ``budget`` overrides the profile's sequential budgets (× a check's first
+    look's samples per pixel, stages/sequential.py).
     ``seed_set`` picks an independent repeat (plan/seeds.py); ``speed_stage``
     False leaves out the speed-and-images stage (no verdict depends on it).
     ``executor`` says where the renders run (run/executors.py: ``local``, or
@@ -180,7 +182,7 @@ def validate(profile_name="quick", scene_names=None, estimators=None,
         scene_results, case_results, checks = [], [], []
         with start_executor(executor, ray_address, ray_workers, variant, loaded) as ex:
             bar = Progress(total, progress)
-            run = Run(profile, variant, cache_dir, out_dir, bar, ex)
+            run = Run(profile, variant, cache_dir, out_dir, bar, ex, budget)
             try:
                 for plan in plans:
                     result, found = compare_scene(run, plan, estimators, speed_stage,

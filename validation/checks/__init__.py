@@ -1,8 +1,10 @@
 """The checks of a validation run and the rules behind each verdict.
 
 * :mod:`.evidence` — the rules of evidence: what a rejection of the
-  batch-means test means (its direction, the estimator's fireflies, the sun),
-  replication, convergence, calibration and the failure-case verdicts;
+  batch-means test means (its direction, the tail its fireflies can carry,
+  a sun not yet seen), the ±ε of a pass, and the failure-case verdicts;
+* :mod:`.convergence` — how errors must fall: the relMSE slope of a Monte
+  Carlo estimator, the bias limit and calibration of one biased by design;
 * :mod:`.scene` — per scene × estimator: ``finite``, ``unbiased``,
   ``converges``; for an estimator biased by design ``bias_shrinks`` and
   ``calibrated`` instead;
@@ -10,8 +12,9 @@
   per parameter sweep ``finite``.
 
 Each check reads only the records it names and gives one of three outcomes
-with a message: **pass**, **fail**, or **inconclusive** (the evidence cannot
-decide at this budget; the run stays green unless ``--strict``). Check ids
+with a message: **pass**, **fail**, or **inconclusive** (the evidence could
+not decide within the sequential test's budget, stages/sequential.py; the
+run stays green unless ``--strict``). Check ids
 are ``<scene or case>/<estimator>/<what>``. To add a check: write it in
 scene.py or cases.py beside its kind, and call it from that module's
 ``judge``.

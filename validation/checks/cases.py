@@ -1,8 +1,21 @@
 """The checks of the failures group: per case × estimator ``refuses`` (an
 estimator refuses exactly the scenes whose content it cannot reach, by its
-registry facts) and ``stable`` (its verdict, :func:`evidence.case_verdict`:
+registry facts) and ``stable`` (its verdict, :func:`case_verdict`:
 fail for "biased" and "non-finite/negative", inconclusive for
 :data:`evidence.INCONCLUSIVE`); per parameter sweep × estimator ``finite``.
+
+Failure-case verdicts (:func:`case_verdict`): ``fine``; ``heavy-tailed``
+(passes, but the error is carried by rare renders or pixels:
+:func:`tails.is_heavy`); ``refused``; ``biased (opt-in)``; ``biased (by
+design)`` (a quadrature's bias, reported with its numbers, not failed);
+``biased`` (a rejection that counts by the rules of evidence, confirmed on a
+fresh batch, or a bias on the map without its sun, tested by the same
+rules); ``non-finite/negative``; and, only when the sequential test's budget
+is spent (stages/sequential.py), ``inconclusive: heavy tail`` (every
+rejection is one a tail can explain at the samples reached, or no rejection
+but an interval on the relative bias wider than ±ε) or ``inconclusive: not
+replicated`` (a rejection that counted did not come back on a fresh batch,
+and no budget was left to go on).
 """
 
 from __future__ import annotations
@@ -11,12 +24,13 @@ from mcillum.integrators import registry
 
 from ..results import CaseRow, Check, Sweep, SweepRow
 from . import check
-from .evidence import BY_DESIGN, FAILING, HEAVY, INCONCLUSIVE, NOT_REPLICATED, case_verdict
+from ..stats import tails
+from .evidence import BY_DESIGN, FAILING, HEAVY, INCONCLUSIVE, NOT_REPLICATED, by_design
 
 
 def judge(case_id: str, rows: dict[str, CaseRow], contains: tuple[str, ...],
           pixels: int) -> list[Check]:
-    """Each row's verdict (:func:`evidence.case_verdict`, written into the
+    """Each row's verdict (:func:`case_verdict`, written into the
     row), then the case's checks: ``contains`` is what the scene header
     declares, ``pixels`` the image's pixel count."""
     for row in rows.values():
@@ -98,3 +112,30 @@ def sweep_finite(case_id: str, rows: list[SweepRow], sweep: Sweep) -> list[Check
                          f"{values[-1]}" if ok and row.growth is not None else
                          f"{row.nonfinite_values} NaN/Inf/negative values"))
     return out
+
+
+def case_verdict(row, pixels: int) -> str:
+    """The verdict of one estimator's row in a failure case of ``pixels``
+    pixels (see the module doc); an estimator biased by design gets
+    :data:`BY_DESIGN` where the others would get "biased"."""
+    verdict = _case_verdict(row, pixels)
+    return BY_DESIGN if verdict == "biased" and by_design(row.name) else verdict
+
+
+def _case_verdict(row, pixels: int) -> str:
+    if row.refused and row.numbers is None:
+        return "refused"
+    n = row.numbers
+    if row.refused:                      # rendered with allow_unreachable=true
+        return "biased (opt-in)"
+    if n.nonfinite_values or n.negative_values:
+        return "non-finite/negative"
+    t, sun_ = n.test, n.sun
+    if sun_ is not None and not sun_.sunless_passed:
+        return "biased"                  # biased without the sun, by the same rules
+    if t.outcome == "pass":
+        heavy = tails.is_heavy(n.relmse.max, n.relmse.median, n.firefly_fraction)
+        return "heavy-tailed" if heavy else "fine"
+    if t.outcome == "fail":
+        return "biased"                  # counted by the rules, confirmed on a fresh batch
+    return NOT_REPLICATED if t.replicated is False else HEAVY    # the budget is spent

@@ -1,32 +1,15 @@
-"""The rules of evidence: what a statistical test's rejection means, and
-every verdict rule of the checks (scene.py, cases.py).
+"""The rules of evidence: what a statistical test's rejection means.
 
 A statistical test says fail only where its assumptions hold. The rules
 below are the one place that decides what a rejection of the batch-means
-test (stats/statistics.py) means; the stages measure, and ask these rules
-only which rejections to test again on fresh renders (a rejection that
-counts is replicated, stages/scene.py and stages/cases.py).
-
-Failure-case verdicts (:func:`case_verdict`): ``fine``; ``heavy-tailed``
-(passes, but the error is carried by rare renders or pixels:
-:func:`tails.is_heavy`); ``refused``; ``biased (opt-in)``; ``biased (by
-design)`` (a quadrature's bias, reported with its numbers, not failed);
-``inconclusive: heavy tail`` (every rejection is one a tail can explain; or,
-on a map with a sun, a rejection that replicated but not on the map without
-the sun, by an estimator whose renders caught fireflies and which is expected
-to hit the sun fewer than :data:`SUN_HITS` times per pixel by its largest pdf,
-or has no such bound; or a sun no render is expected to hit anywhere);
-``inconclusive: not replicated`` (a rejection that counts did not come back
-in K fresh renders: an α-chance alarm, or a bias too small for K); and the
-two that fail: ``biased`` (a rejection that counts and replicated and no sun
-explains, or a bias on the map without its sun, tested by the same rules) and
-``non-finite/negative``. Replication can decide only where the test's
-assumptions hold: fresh renders miss an unseen tail in the same pixels, so an
-inconclusive reading is not replicated, and only the rejections that counted
-are tested again. An estimator without fireflies gets no sun excuse (a
-firefly clamp is exactly that), whatever its pdf, unless no render is
-expected to hit the sun anywhere; an upward rejection never gets one (a
-missed sun only darkens).
+test (stats/statistics.py) means, and what a pass must show (the image
+mean unbiased within ±ε); the stages measure, and ask these rules whether
+to render on (stages/sequential.py). The verdicts built on them: a scene's
+``unbiased`` check (scene.py) and a failure case's verdict (cases.py:
+``case_verdict``, whose names are defined here). A sun not yet seen is a
+tail too (:func:`unseen_sun`): no downward rejection counts while the
+estimator's largest pdf allows fewer than :data:`SUN_HITS` direct hits per
+pixel (stages/cases.py).
 """
 
 from __future__ import annotations
@@ -78,27 +61,39 @@ def by_design(name: str) -> bool:
 # * A rejection **upward** (estimator brighter) counts as bias — at a pixel,
 #   unless path's own renders caught a firefly there (the reference, path's
 #   mean, may lack an unseen tail there).
-# * A pixel's rejection **downward** counts as bias only if the estimator is
-#   not heavy-tailed here.
-# * The image mean's rejection **downward** counts if the estimator is not
-#   heavy-tailed, or if its tail cannot carry the deficit
-#   (:func:`tail_can_carry`): the fireflies seen carried s of the image mean
-#   in k events; for the estimator to be unbiased, its tail must carry
-#   s + d (d: the deficit beyond the test's critical value), i.e. the renders
-#   saw only k of about k·(s + d)/s events. If a Poisson count that low has
-#   probability below the pooled test's level, the tail cannot explain it.
+# * A pixel's rejection **downward** counts unless a tail can carry its
+#   deficit (:func:`pixel_tail_can_carry`): no firefly anywhere, no tail;
+#   otherwise each unseen event adds at most the largest event seen in the
+#   image (tails.largest_event) to the pixel's sum of samples, so an
+#   unbiased estimator must have missed at least deficit / that many events
+#   there beyond the e it caught; if a Poisson count of e or fewer has
+#   probability below the per-pixel level at that rate, the tail cannot
+#   explain it. The excuse scales with the evidence: the deficit grows with
+#   the samples, the largest event does not, so a sequential test that keeps
+#   rendering (stages/sequential.py) ends it.
+# * The image mean's rejection **downward** counts unless its tail can carry
+#   the deficit (:func:`tail_can_carry`): the fireflies seen carried s of the
+#   image mean in k events; for the estimator to be unbiased, its tail must
+#   carry s + d (d: the deficit beyond the test's critical value), i.e. the
+#   renders saw only k of about k·(s + d)/s events. If a Poisson count that
+#   low has probability below the pooled test's level, the tail cannot
+#   explain it.
 # * A pixel's rejection does not count where **path's own renders** reject
-#   there in the same direction (:func:`control_pixels`): every estimator's
-#   K renders on a rung share their seeds, so they share the pixel samples;
-#   where a pixel's value rests on events too rare for the budget (a sliver
-#   of a bright edge in a dark pixel), path's renders, the control, differ
-#   from the path reference as much, and the difference says nothing about
-#   the estimator. For path itself every pixel rejection is of that kind
-#   (path against path); its image mean still counts (a reference rendered
-#   with other settings would shift it).
+#   there in the same direction (:func:`control_pixels`, the first look of a
+#   scene run only): every estimator's K renders on a rung share their seeds,
+#   so they share the pixel samples; where a pixel's value rests on events
+#   too rare for the budget (a sliver of a bright edge in a dark pixel),
+#   path's renders, the control, differ from the path reference as much,
+#   and the difference says nothing about the estimator. For path itself
+#   every pixel rejection is of that kind (path against path); its image
+#   mean still counts (a reference rendered with other settings would shift
+#   it). Later looks render fresh seeds, which path's renders do not share.
 # * A rejection that does not count is **inconclusive**: the test saw a
 #   difference that a tail could explain, and ``samples_needed`` says about
 #   how many samples per pixel would see the tail TAIL_EVENTS times there.
+# * No rejection is a **pass** only where the interval on the image mean's
+#   relative bias lies inside ±ε (:func:`settle`); a wider one is
+#   inconclusive: the test could not have seen a bias of ε.
 
 #: Tail events per pixel that a budget must expect before its per-pixel test
 
@@ -119,6 +114,12 @@ class Decision:
     pixels: np.ndarray | None = None      # (H, W) the pixel rejections that counted
     pooled: np.ndarray | None = None      # (C,) the image-mean rejections that counted
     counted_up: bool = False        # a rejection upward counted (no tail excuses it)
+    #: The image mean's bias relative to the reference's, per channel, and the
+    #: half-width of its interval at the test's level (the largest channel's).
+    relative_bias: list[float] | None = None
+    half_width: float | None = None
+    #: (H, W) pixels whose deficit a tail could carry (:func:`pixel_tail_can_carry`)
+    tail_pixels: np.ndarray | None = None
 
 
 def tail_can_carry(c, events: int, carried: np.ndarray) -> np.ndarray:
@@ -134,6 +135,21 @@ def tail_can_carry(c, events: int, carried: np.ndarray) -> np.ndarray:
     return stats.poisson.cdf(events, expected) >= c.alpha_pooled
 
 
+def pixel_tail_can_carry(c, events: np.ndarray, samples: int,
+                         event_value: float) -> np.ndarray:
+    """(H, W): could a tail whose events each add at most ``event_value`` to a
+    pixel's sum of ``samples`` samples, of which the renders caught
+    ``events`` there, explain the pixel's deficit in :class:`statistics.
+    Comparison` ``c`` (the rules above)? False everywhere without a firefly
+    (``event_value`` 0)."""
+    if event_value <= 0 or c.pixel_diff is None:
+        return np.zeros(np.shape(c.pixel_p), bool)
+    crit = stats.norm.isf(c.alpha_pixel / 2)
+    deficit = np.maximum(0.0, -np.nan_to_num(c.pixel_diff) - crit * np.nan_to_num(c.pixel_se))
+    needed = events + samples * deficit / event_value
+    return stats.poisson.cdf(events, needed) >= c.alpha_pixel
+
+
 def control_pixels(c) -> np.ndarray | None:
     """(H, W): +1 where path's own renders' comparison ``c`` rejects upward,
     −1 downward, 0 elsewhere (None: not tested)."""
@@ -144,11 +160,13 @@ def control_pixels(c) -> np.ndarray | None:
 
 def bias_outcome(c, events: np.ndarray, renders: int, samples: int,
                  carried: np.ndarray, reference_events: np.ndarray | None = None,
-                 control: np.ndarray | None = None, is_control: bool = False) -> Decision:
+                 control: np.ndarray | None = None, is_control: bool = False,
+                 event_value: float = 0.0) -> Decision:
     """The outcome of :class:`statistics.Comparison` ``c`` given the
     estimator's fireflies per pixel ``events`` over its ``renders`` renders
     of ``samples`` samples per pixel in all, what they ``carried`` of the
-    image mean (tails.tail_events), path's fireflies per pixel
+    image mean (tails.tail_events), the largest event among them
+    (``event_value``, tails.largest_event), path's fireflies per pixel
     (``reference_events``, None: not known) and path's own rejections on
     the same pixel samples (``control``: :func:`control_pixels`; for path
     itself ``is_control``) (the rules above)."""
@@ -173,13 +191,19 @@ def bias_outcome(c, events: np.ndarray, renders: int, samples: int,
     low_counted = low & ~tail_can_carry(c, total, np.asarray(carried, np.float64))
     pooled_up, pooled_down = bool(high.any()), bool(low.any())
     pooled_counted = bool(low_counted.any())
-    pixels = (up & ~ref_tail) | (down if not heavy else np.zeros_like(down))
+    carry = pixel_tail_can_carry(c, events, samples, event_value)
+    down_counted = down & ~carry
+    n_down_counted = int(down_counted.sum())
+    down = down & ~down_counted                       # the excused ones
+    n_down = int(down.sum())
+    pixels = (up & ~ref_tail) | down_counted
 
     def decide(outcome, reason, needed=None):
         return Decision(outcome=outcome, reason=reason, rejected_up=all_up,
                         rejected_down=all_down,
                         samples_needed=needed, tail_events=total, pixels=pixels,
-                        pooled=high | low_counted, counted_up=bool(up_counted or pooled_up))
+                        pooled=high | low_counted, counted_up=bool(up_counted or pooled_up),
+                        tail_pixels=carry)
 
     if not (pooled.any() or rejected.any()):
         return decide("pass", "no rejection")
@@ -191,8 +215,10 @@ def bias_outcome(c, events: np.ndarray, renders: int, samples: int,
         counted.append("image mean darker than the reference"
                        + (f", more than its tail ({total} fireflies in {renders} renders) "
                           "can explain" if heavy else ""))
-    if n_down and not heavy:
-        counted.append(f"darker at {n_down} px, with no firefly in {renders} renders")
+    if n_down_counted:
+        counted.append(f"darker at {n_down_counted} px"
+                       + (f", more than a tail ({total} fireflies in {renders} renders) can "
+                          "explain there" if heavy else f", with no firefly in {renders} renders"))
     if counted:
         return decide("fail", "; ".join(counted))
     control_said = (f"at {n_shared} px path's own renders (the same pixel samples) differ "
@@ -224,14 +250,75 @@ def bias_outcome(c, events: np.ndarray, renders: int, samples: int,
 
 
 
-def decider(reference_mean: np.ndarray, spp: int, reference_events: np.ndarray | None):
-    """``decide(comparison, renders)``: :func:`bias_outcome` of a comparison
-    of ``renders`` (K, H, W, C) at ``spp``, with their own fireflies as tail
-    evidence (for replications and failure cases)."""
-    def decide(comparison, renders):
-        events, k, carried = tails.tail_events([renders], reference_mean)
-        return bias_outcome(comparison, events, k, spp * k, carried, reference_events)
+def decider(reference_mean: np.ndarray, reference_events: np.ndarray | None):
+    """``decide(comparison, batches)``: :func:`bias_outcome` of a comparison
+    of ``batches`` ([(spp, (K, H, W, C) renders)], pooled), with their own
+    fireflies as tail evidence (sequential looks, replications and failure
+    cases)."""
+    def decide(comparison, batches):
+        spps = [spp for spp, _ in batches]
+        stack = [x for _, x in batches]
+        events, k, carried = tails.tail_events(stack, reference_mean, spps)
+        samples = int(sum(spp * x.shape[0] for spp, x in batches))
+        return bias_outcome(comparison, events, k, samples, carried, reference_events,
+                            event_value=tails.largest_event(stack, reference_mean, spps))
     return decide
+
+
+def unseen_sun(d: Decision, c, hits: float | None) -> Decision:
+    """``d`` read with a sun the renders may not have hit yet (``hits``: the
+    direct hits per pixel the estimator's largest pdf allows so far; None:
+    no bound): no downward rejection counts — a missed sun only darkens —
+    so a fail that rested on one becomes inconclusive, and a confirming
+    batch does not count one either."""
+    up = np.asarray(c.pooled_t) > 0
+    d.pooled = None if d.pooled is None else d.pooled & up
+    d.pixels = None if d.pixels is None else d.pixels & (np.nan_to_num(c.pixel_t) > 0)
+    d.tail_pixels = np.ones(np.shape(c.pixel_p), bool)
+    if d.outcome == "fail" and not d.counted_up:
+        d.outcome = "inconclusive"
+        d.reason += ("; the sun may be unseen: " +
+                     (f"its largest pdf allows {hits:.2g} direct hits per pixel so far "
+                      f"(fewer than {SUN_HITS:g})" if hits is not None else
+                      "its facts give no largest pdf (max_direction_pdf)"))
+    return d
+
+
+def settle(d: Decision, c, epsilon: float, samples: int = 0) -> Decision:
+    """``d`` with the image mean's relative bias and the half-width of its
+    interval (:meth:`statistics.Comparison.relative_bias`) recorded; a pass
+    whose interval does not lie inside ±``epsilon`` becomes inconclusive
+    (the test could not have seen a bias of ε), and ``samples_needed`` says
+    about how many samples per pixel (``samples`` now) would narrow it
+    enough, the half-width falling as 1/√samples (at least as many: a tail
+    still unseen widens it)."""
+    rel, half = c.relative_bias()
+    ok = np.isfinite(rel)
+    if not ok.any():                        # a black image: nothing relative to say
+        return d
+    d.relative_bias = [float(x) for x in np.where(ok, rel, 0.0)]
+    d.half_width = float(np.max(half[ok]))
+    widest = float(np.max(np.abs(rel[ok]) + half[ok]))
+    bias = f"image mean {_signed(rel[ok])} ± {100 * d.half_width:.2g} %"
+    if d.outcome == "pass":
+        if widest <= epsilon:
+            d.reason = f"unbiased within ±{100 * epsilon:.3g} %: {bias}"
+        else:
+            d.outcome = "inconclusive"
+            d.reason = (f"no bias found, but {bias} reaches {100 * widest:.2g} %, "
+                        f"beyond ±{100 * epsilon:.3g} %")
+            room = epsilon - float(np.max(np.abs(rel[ok])))
+            if samples and room > 0:
+                d.samples_needed = samples * (d.half_width / room) ** 2
+    elif d.outcome == "fail":
+        d.reason += f"; {bias}"
+    return d
+
+
+def _signed(rel: np.ndarray) -> str:
+    """The largest relative bias in percent, with its sign."""
+    x = rel[np.argmax(np.abs(rel))]
+    return f"{100 * x:+.2g} %"
 
 
 @dataclass(kw_only=True)
@@ -240,155 +327,62 @@ class Evidence:
     the pooled test of all rungs (``comparison``; None: not tested, its
     renders hold NaN/Inf), the fireflies of its renders (``events`` per
     pixel over ``renders`` renders of ``samples`` samples per pixel in all,
-    what they ``carried`` of the image mean), path's fireflies
-    (``reference_events``) and, where a rejection counted, the same test on
-    K fresh renders (``replication``)."""
+    what they ``carried`` of the image mean, the largest one
+    ``event_value``), path's fireflies (``reference_events``) and, once
+    the sequential test has run (stages/sequential.py), its outcome
+    (``settled``)."""
 
     comparison: object | None
     events: np.ndarray
     renders: int
     samples: int
     carried: np.ndarray
+    event_value: float = 0.0
     reference_events: np.ndarray | None = None
     #: path's own rejections on the same pixel samples (:func:`control_pixels`);
     #: ``is_control``: this is path's evidence.
     control: np.ndarray | None = None
     is_control: bool = False
-    replication: "Replication | None" = None
+    settled: Settled | None = None
 
     @property
     def heavy(self) -> bool:
-        """Its renders hold a firefly: heavy-tailed here."""
+        """Its renders hold a firefly."""
         return bool(self.events.any())
 
-    def first_reading(self) -> "Decision":
-        """:func:`bias_outcome` of the pooled test (before replication)."""
+    @property
+    def tail_resolved(self) -> bool:
+        """No firefly, or as many per pixel that holds one as a test needs
+        to see a tail (:data:`TAIL_EVENTS`): one firefly is no evidence."""
+        held = int((self.events > 0).sum())
+        return held == 0 or self.events.sum() >= TAIL_EVENTS * held
+
+    def first_reading(self) -> Decision:
+        """:func:`bias_outcome` of the pooled test (the first look)."""
         return bias_outcome(self.comparison, self.events, self.renders, self.samples,
                             self.carried, self.reference_events, self.control,
-                            self.is_control)
+                            self.is_control, self.event_value)
 
 
 @dataclass(kw_only=True)
-class Replication:
-    """The test of a rejection that counted, again on ``renders`` fresh
-    renders at ``spp`` (statistics.replicated_rejection): whether it came
-    back, at which pixels (H, W), and whether the fresh renders' fireflies
-    excused a downward one."""
+class Settled:
+    """A sequential test's end (stages/sequential.py): the decision at the
+    last look, the looks taken, the samples per pixel reached, the budget,
+    and whether a rejection that counted came back in a fresh batch."""
 
-    replicated: bool
-    pixels: np.ndarray
-    excused: bool
-    renders: int
-    spp: int
+    decision: Decision
+    looks: int
+    samples: int
+    budget: int
+    replicated: bool | None = None
+    replication: str = ""
+    summary: str = ""               # the last look's statistics.Comparison.summary
 
 
 def unbiasedness(e: Evidence) -> Decision:
-    """The verdict on an estimator's unbiasedness on a scene: the first
-    reading of its pooled test by the rules above; a fail that did not come
-    back in fresh renders is inconclusive (an α-chance alarm, or a bias too
-    small for K); not tested (NaN/Inf in its renders) is a fail."""
+    """The verdict on an estimator's unbiasedness on a scene: the sequential
+    test's (:class:`Settled`), else the first reading of its pooled test by
+    the rules above; not tested (NaN/Inf in its renders) is a fail."""
     if e.comparison is None:
         return Decision(outcome="fail", reason="non-finite pixels")
-    d = e.first_reading()
-    r = e.replication
-    if d.outcome != "fail" or r is None:
-        return d
-    if not r.replicated:
-        d.outcome = "inconclusive"
-        d.reason += (f"; not replicated in {r.renders} fresh renders at {r.spp} spp"
-                     + (" (they caught fireflies: a tail)" if r.excused else ""))
-    else:
-        d.reason += (f"; replicated in {r.renders} fresh renders at {r.spp} spp"
-                     + (f" ({int(r.pixels.sum())} px)" if r.pixels.any() else " (image mean)"))
-    return d
-
-
-
-#: The slope Monte Carlo's relMSE follows against spp.
-EXPECTED_SLOPE = -1.0
-
-#: A slope interval wider than this decides nothing.
-SLOPE_WIDTH = 1.0
-
-#: How far above the expected slope an interval must lie to fail: a slope of
-#: −0.99 ± 0.005 is Monte Carlo (the reference's own noise, subtracted from
-#: each rung's relMSE, bends the last rungs by about that much).
-SLOPE_TOLERANCE = 0.15
-
-
-def convergence_outcome(c, heavy: bool) -> tuple[str, str]:
-    """(outcome, message) of a :class:`results.Convergence`: fail when the
-    slope's 95 % interval lies above the expected slope (by more than
-    SLOPE_TOLERANCE) and is at most SLOPE_WIDTH wide (too slow for Monte
-    Carlo: a bias, or an error that does not fall), unless the estimator is
-    heavy-tailed (an unseen tail makes low-spp errors look small:
-    pre-asymptotic); pass when the interval lies below 0 otherwise;
-    inconclusive when it is too wide to say either."""
-    if c.exact:
-        return "pass", "exact (zero variance at every spp)"
-    text = f"relMSE slope {c.slope:+.2f} [{c.low:+.2f}, {c.high:+.2f}]"
-    if not np.isfinite(c.low) or not np.isfinite(c.high):
-        return "inconclusive", "fewer than 3 rungs with an error above the reference's"
-    width = c.high - c.low
-    if c.low > EXPECTED_SLOPE + SLOPE_TOLERANCE:
-        if width > SLOPE_WIDTH:
-            return "inconclusive", f"{text}: too wide (> {SLOPE_WIDTH}) to decide"
-        if heavy:
-            return "inconclusive", (f"{text}: slower than {EXPECTED_SLOPE:+.0f}, but "
-                                    "heavy-tailed (an unseen tail flattens the slope)")
-        return "fail", f"{text}: slower than {EXPECTED_SLOPE:+.0f}"
-    if c.high < 0:
-        return "pass", text
-    return "inconclusive", (f"{text}: contains 0 and does not lie more than "
-                            f"{SLOPE_TOLERANCE} above {EXPECTED_SLOPE:+.0f}: cannot decide")
-
-
-
-#: Median RMSE / predicted std counted as calibrated (stages/quadrature.py).
-CALIBRATED = (2.0 / 3.0, 1.5)
-
-
-def calibration_verdict(median: float) -> str:
-    """calibrated, over-confident (errors larger than predicted) or
-    under-confident, by the median measured RMSE over predicted std."""
-    if CALIBRATED[0] <= median <= CALIBRATED[1]:
-        return "calibrated"
-    return "over-confident" if median > CALIBRATED[1] else "under-confident"
-
-
-def case_verdict(row, pixels: int) -> str:
-    """The verdict of one estimator's row in a failure case of ``pixels``
-    pixels (see the module doc); an estimator biased by design gets
-    :data:`BY_DESIGN` where the others would get "biased"."""
-    verdict = _case_verdict(row, pixels)
-    return BY_DESIGN if verdict == "biased" and by_design(row.name) else verdict
-
-
-def _case_verdict(row, pixels: int) -> str:
-    if row.refused and row.numbers is None:
-        return "refused"
-    n = row.numbers
-    if row.refused:                      # rendered with allow_unreachable=true
-        return "biased (opt-in)"
-    if n.nonfinite_values or n.negative_values:
-        return "non-finite/negative"
-    t, sun_ = n.test, n.sun
-    if t.outcome == "pass":
-        heavy = tails.is_heavy(n.relmse.max, n.relmse.median, n.firefly_fraction)
-        return "heavy-tailed" if heavy else "fine"
-    if sun_ is not None and not sun_.sunless_passed:
-        return "biased"                  # biased without the sun, by the same rules
-    if t.outcome == "inconclusive":
-        return HEAVY
-    if not t.replicated:
-        return NOT_REPLICATED
-    if sun_ is None or t.counted_up:
-        return "biased"                  # (a missed sun only ever darkens)
-    hits = sun_.expected_sun_hits_per_pixel
-    if hits is not None and hits * pixels < SUN_HITS:
-        return HEAVY                     # a sun no render is expected to hit anywhere
-    if t.tail_events > 0 and (hits is None or hits < SUN_HITS):
-        # not biased without the sun, heavy-tailed with it, and not expected
-        # to hit the sun SUN_HITS times per pixel (or no bound on its pdf)
-        return HEAVY
-    return "biased"
+    return e.settled.decision if e.settled is not None else e.first_reading()

@@ -1,17 +1,15 @@
 """The checks of a scene comparison, per estimator: ``finite`` (no NaN/Inf),
 ``unbiased`` (the pooled batch-means test of all rungs, read by the rules of
 evidence), ``converges`` (the slope of relMSE against spp); for an estimator
-biased by design (a quadrature) ``bias_shrinks`` (from N = 16 to 256
-directions) and ``calibrated`` (its posterior std against the measured
-error) instead, from the quadrature stage.
+biased by design (a quadrature) ``bias_shrinks`` (its bias goes to 0: within
+convergence.BIAS_LIMIT at N = 256) and ``calibrated`` (its posterior std
+against the measured error) instead, from the quadrature stage.
 """
 
 from __future__ import annotations
 
-import math
-
 from ..results import Check, Convergence, EstimatorResult, Quadrature, Unbiasedness
-from . import by_estimator, check, evidence
+from . import by_estimator, check, convergence, evidence
 from .evidence import Evidence, by_design
 
 
@@ -22,7 +20,7 @@ def judge(scene_id: str, measured: dict[str, EstimatorResult],
     design or not), then every check of the scene, estimator by estimator."""
     for name, est in measured.items():
         decide_unbiasedness(est.unbiasedness, found[name])
-        decide_convergence(est.convergence, found[name].heavy)
+        decide_convergence(est.convergence, found[name].tail_resolved)
     return by_estimator([*finite(scene_id, measured), *unbiased(scene_id, measured),
                          *converges(scene_id, measured), *bias_shrinks(scene_id, quadrature),
                          *calibrated(scene_id, quadrature)])
@@ -34,11 +32,15 @@ def decide_unbiasedness(u: Unbiasedness, e: Evidence) -> None:
     u.outcome, u.reason = d.outcome, d.reason
     u.rejected_up, u.rejected_down = d.rejected_up, d.rejected_down
     u.tail_events, u.samples_needed = d.tail_events, d.samples_needed
+    u.relative_bias, u.half_width = d.relative_bias, d.half_width
+    if e.settled is not None:
+        u.looks, u.samples_per_pixel = e.settled.looks, e.settled.samples
+        u.summary = e.settled.summary or u.summary
 
 
-def decide_convergence(c: Convergence, heavy: bool) -> None:
-    """The verdict of :func:`evidence.convergence_outcome`, written into ``c``."""
-    c.outcome, c.message = evidence.convergence_outcome(c, heavy)
+def decide_convergence(c: Convergence, resolved: bool) -> None:
+    """The verdict of :func:`convergence.convergence_outcome`, written into ``c``."""
+    c.outcome, c.message = convergence.convergence_outcome(c, resolved)
     c.passed = c.outcome == "pass"
 
 
@@ -67,39 +69,33 @@ def unbiased(scene_id: str, measured: dict[str, EstimatorResult]) -> list[Check]
 
 def converges(scene_id: str, measured: dict[str, EstimatorResult]) -> list[Check]:
     """The error falls with spp as Monte Carlo's should
-    (:func:`evidence.convergence_outcome`)."""
+    (:func:`convergence.convergence_outcome`)."""
     return [check(scene_id, name, "converges", est.convergence.outcome, est.convergence.message)
             for name, est in measured.items() if not by_design(name)]
 
 
 def bias_shrinks(scene_id: str, quadrature: dict[str, Quadrature]) -> list[Check]:
-    """An estimator biased by design: its rms bias at N = 256 directions is
-    below that at N = 16 by more than twice the standard error of the
-    difference (pass), above it by as much (fail), else inconclusive."""
+    """An estimator biased by design: its bias goes to 0
+    (:func:`convergence.bias_limit_outcome`: at the largest N within
+    convergence.BIAS_LIMIT of the reference's rms, and not growing with N)."""
     out = []
     for name, q in quadrature.items():
         if not q.bias or len(q.bias) < 2:
             continue
         lo, hi = q.bias[0], q.bias[-1]
-        se = math.hypot(lo.rms_bias_se, hi.rms_bias_se)
-        text = (f"rms bias {lo.rms_bias:.2%} ± {lo.rms_bias_se:.2%} at N = {lo.directions}, "
-                f"{hi.rms_bias:.2%} ± {hi.rms_bias_se:.2%} at N = {hi.directions} "
-                f"(of the reference's rms)")
-        if lo.rms_bias - hi.rms_bias > 2 * se:
-            outcome = "pass"
-        elif hi.rms_bias - lo.rms_bias > 2 * se:
-            outcome, text = "fail", "the bias grows with N: " + text
-        else:
-            outcome, text = "inconclusive", "no difference K renders resolve: " + text
+        outcome, what = convergence.bias_limit_outcome(lo, hi)
+        text = (f"{what}: rms bias {lo.rms_bias:.2%} ± {lo.rms_bias_se:.2%} at "
+                f"N = {lo.directions}, {hi.rms_bias:.2%} ± {hi.rms_bias_se:.2%} at "
+                f"N = {hi.directions} (of the reference's rms)")
         out.append(check(scene_id, name, "bias_shrinks", outcome, text))
     return out
 
 
 def calibrated(scene_id: str, quadrature: dict[str, Quadrature]) -> list[Check]:
     """The posterior std predicts the error: median measured RMSE over
-    predicted std within evidence.CALIBRATED (pass); otherwise
-    inconclusive, naming the direction (a prior that does not fit the
-    lighting is a finding about the scene, not a broken estimator)."""
+    predicted std inside convergence.CALIBRATED passes, outside
+    convergence.MISCALIBRATED fails, between is inconclusive (naming the
+    direction); exact estimators pass."""
     out = []
     for name, q in quadrature.items():
         c = q.calibration
@@ -107,6 +103,7 @@ def calibrated(scene_id: str, quadrature: dict[str, Quadrature]) -> list[Check]:
             continue
         text = (f"{c.verdict}: measured RMSE / predicted std median {c.median:.2f} "
                 f"(quartiles {c.q25:.2f}–{c.q75:.2f}) over {c.pixels} pixel channels")
-        ok = c.verdict == "calibrated" or c.verdict.startswith("exact")
-        out.append(check(scene_id, name, "calibrated", "pass" if ok else "inconclusive", text))
+        outcome = ("pass" if c.verdict.startswith("exact") else
+                   convergence.calibration_outcome(c.median))
+        out.append(check(scene_id, name, "calibrated", outcome, text))
     return out

@@ -113,6 +113,20 @@ class FailureCase:
 
 
 @dataclass(frozen=True, kw_only=True)
+class Sequential:
+    """How far a sequential test may go (stages/sequential.py): the samples
+    per pixel one check may reach before it says inconclusive, as a multiple
+    of its first look's (a scene's ladder, a case's K seeds), and the ε of a
+    pass ("unbiased within ±ε": the interval on the image mean's relative
+    bias lies inside ±ε), for scene runs and failure cases."""
+
+    scene_budget: float = 16.0
+    case_budget: float = 1024.0
+    scene_epsilon: float = 0.02
+    case_epsilon: float = 0.05
+
+
+@dataclass(frozen=True, kw_only=True)
 class Profile:
     """What one ``--profile`` runs, and how precise its references are."""
 
@@ -138,6 +152,8 @@ class Profile:
     #: Scene files compared by the ``user_scenes`` rule when the command
     #: line names no scenes (absolute paths).
     scene_files: tuple[str, ...] = ()
+    #: Budgets and ε of the sequential tests.
+    sequential: Sequential = Sequential()
     #: The file the profile was read from ("" for one built in Python).
     source: str = ""
 

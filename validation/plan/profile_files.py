@@ -38,7 +38,7 @@ import tomllib
 from mcillum import files
 from mcillum.errors import UsageError
 
-from .plans import Display, FailureCase, Profile, SceneRun, UserScenes
+from .plans import Display, FailureCase, Profile, SceneRun, Sequential, UserScenes
 
 
 # ------------------------------------ The files -------------------------------------
@@ -61,8 +61,10 @@ SCHEMA = {
         "plugins": ("names", False), "scene_files": ("names", False),
         "display": ("display", False),
         "user_scenes": ("user_scenes", False), "scenes": ("scenes", False),
-        "failures": ("failures", False),
+        "failures": ("failures", False), "sequential": ("sequential", False),
     },
+    "sequential": {"scene_budget": ("positive", False), "case_budget": ("positive", False),
+                   "scene_epsilon": ("positive", False), "case_epsilon": ("positive", False)},
     "display": {"res": ("count", True), "path_spp": ("ladder", False),
                 "renders": ("count", False), "repeats": ("count", False)},
     "user_scenes": {"res": ("count", True), "ladder": ("ladder", True),
@@ -142,6 +144,8 @@ def _value(kind: str, v, where: str):
     if kind == "sweep":
         t = _table(v, "sweep", where)
         return (t["parameter"], t["values"])
+    if kind == "sequential":
+        return Sequential(**_table(v, "sequential", where))
     if kind == "user_scenes":                      # its display defaults in read()
         return _table(v, "user_scenes", where)
     if not _array(v, lambda x: isinstance(x, dict)):            # scenes, failures

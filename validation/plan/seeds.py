@@ -18,8 +18,12 @@ bench`, which used 0, 1, …, has its own stream now):
                      point-set estimators at N = 16, default, 256 and cosine at N·spp)
     failure          700 000 + i         (K seeds per failure case)
     sunless          750 000 + i         (the same case on its map without the sun)
-    replication      800 000 + i         (fresh renders that must repeat a rejection)
-    sunless_replication 850 000 + i
+    replication      800 000 + i         (reserved: fresh renders that repeated a
+                     rejection before the sequential tests took that over)
+    sunless_replication 850 000 + i      (reserved, likewise)
+    sequential       look j, render i  →  860 000 + 1 000·j + i  (the batches a sequential
+                     test adds where the evidence is thin, stages/sequential.py; 20 looks)
+    sunless_sequential  look j, render i  →  880 000 + 1 000·j + i
     bench            900 000 + i         (`mcillum bench`)
     compile          999 999             (each integrator's first, untimed render)
     reference        1 000 000 + pass    (Mitsuba's `path`, one seed per pass)
@@ -87,7 +91,9 @@ STREAMS = {
     "failure": Layout(700_000, 50_000),
     "sunless": Layout(750_000, 50_000),
     "replication": Layout(800_000, 50_000),
-    "sunless_replication": Layout(850_000, 50_000),
+    "sunless_replication": Layout(850_000, 10_000),
+    "sequential": Layout(860_000, 1_000, blocks=20),
+    "sunless_sequential": Layout(880_000, 1_000, blocks=20),
     "bench": Layout(900_000, 99_999),
     "compile": Layout(999_999, 1),
     "reference": Layout(1_000_000, 2 ** 32 - 1_000_000),

@@ -23,11 +23,13 @@ def failures_section(res: Results, run_dir: str, colours: dict) -> str:
                     for c in res.failed) or "<li>No check failed in this run.</li>"
     unsure = "".join(f"<li><code>{html.escape(c.id)}</code>: {html.escape(c.message)}</li>"
                      for c in res.inconclusive)
-    unsure = (f"<h3>Inconclusive at this budget</h3><p>The test saw a difference that a heavy "
-              f"tail explains (an estimator darker where its renders caught fireflies, or a "
-              f"sun too small to be hit), or a rejection that did not replicate: neither "
-              f"biased nor shown unbiased. Each line says about how many samples per pixel "
-              f"would decide.</p><ul>{unsure}</ul>") if unsure else ""
+    unsure = (f"<h3>Inconclusive at this budget</h3><p>The sequential test rendered on to "
+              f"its budget and could not decide: a difference that a heavy tail can still "
+              f"explain (an estimator darker where its renders have not yet seen the tail, or "
+              f"a sun not yet hit), an interval on the bias wider than ±ε, or a rejection "
+              f"that did not come back on fresh renders: neither biased nor shown unbiased. "
+              f"Each line says the samples per pixel reached and about how many would "
+              f"decide (<code>--budget</code>).</p><ul>{unsure}</ul>") if unsure else ""
     capped = [f"<li><code>{html.escape(s.name)}</code>: reference capped "
               f"({html.escape(s.reference.capped)})</li>"
               for s in res.scenes if s.reference.capped]
@@ -150,6 +152,9 @@ def _failure_row(case: CaseResult, est, colours: dict) -> str:
     elif t is not None:
         evidence.append(f"per-pixel test: {100 * t.pass_fraction:.1f} % pass, "
                         f"pooled p {min(t.pooled_p):.2g}")
+    if t is not None and t.looks > 1:
+        evidence.append(f"sequential: {t.looks} looks, {fmt(t.samples_per_pixel)} samples "
+                        "per pixel")
     spp = (f"{fmt(match.spp)} [{fmt(match.low)}, {fmt(match.high)}]"
            if match else "never (biased)")
     return (f"<tr>{name}<td class={cls}>{html.escape(v)}</td>"

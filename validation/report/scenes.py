@@ -70,8 +70,7 @@ def _quadrature_section(scene: SceneResult, colours: dict) -> str:
 directions × {q0.spp} spp over that of <code>cosine_hemisphere</code> at N·{q0.spp} spp
 (below 1: the point set wins), 95 % interval. <b>Calibration</b>: per pixel, the measured
 RMSE over the predicted posterior std (the reference's variance added); calibrated when the
-median lies in [0.67, 1.5]
-(above: over-confident).</p>
+median lies in [0.5, 2] (above: over-confident); outside [0.1, 3] the check fails.</p>
 <table><tr><th>estimator</th><th>N</th><th>relMSE ÷ cosine at equal rays</th>
 <th>posterior std</th></tr>{''.join(rows)}</table>
 {bias}"""

@@ -24,5 +24,5 @@ from .run import MINOR_VERSION, SCHEMA, VERSION, EstimatorInfo, Results  # noqa:
 from .scene import (Convergence, EstimatorResult, RunStats, SceneResult,  # noqa: F401
                     Unbiasedness)
 from .speed import Budget, BudgetRun, CostModel, Interval, Placement, Ratio, Speed  # noqa: F401
-from .tables import (CSV_FIELDS, quadrature_summary, ranking_text, speed_summary,  # noqa: F401
+from .tables import (CSV_FIELDS, counts_line, quadrature_summary, ranking_text, speed_summary,  # noqa: F401
                      summary, write_csv, write_junit, write_summary)

@@ -28,8 +28,9 @@ class SppToMatch:
 
 @dataclass(kw_only=True)
 class BatchTest(Outcome):
-    """The batch-means test of K renders and, where it rejected, its replication
-    in K fresh renders (``replicated`` None: nothing needed replicating)."""
+    """The sequential batch-means test of K renders and the batches it added
+    and, where a rejection counted, its confirmation on a fresh batch
+    (``replicated`` None: nothing needed confirming)."""
 
     passed: bool
     pass_fraction: float
@@ -47,6 +48,13 @@ class BatchTest(Outcome):
     tail_events: int = 0
     samples_needed: float | None = optional()
     counted_up: bool = False        # an upward rejection counted (checks/evidence.py)
+    #: The sequential test (minor version 8, stages/sequential.py): looks
+    #: taken, samples per pixel reached, the image mean's relative bias per
+    #: channel and the half-width of its interval at the last look's level.
+    looks: int = 1
+    samples_per_pixel: int | None = optional()
+    relative_bias: list[float] | None = optional()
+    half_width: float | None = optional()
 
 
 @dataclass(kw_only=True)

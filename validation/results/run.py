@@ -23,7 +23,10 @@ VERSION = 1
 #: 6: ``executor`` (where the renders ran: local or ray, workers, nodes) and
 #: per speed stage ``timed_on`` (the nodes that timed its renders).
 #: 7: per scene ``notes`` (a scene given by path: settings, film, refusals).
-MINOR_VERSION = 7
+#: 8: sequential tests: unbiasedness and each failure-case test carry
+#: ``looks``, ``relative_bias`` and ``half_width``; a failure-case test its
+#: ``samples_per_pixel`` reached.
+MINOR_VERSION = 8
 
 
 @dataclass(kw_only=True)

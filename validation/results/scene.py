@@ -56,6 +56,12 @@ class Unbiasedness(Outcome):
     rejected_down: int = 0
     tail_events: int = 0
     samples_needed: float | None = optional()
+    #: The sequential test (minor version 8, stages/sequential.py): looks
+    #: taken (samples_per_pixel: reached in all), the image mean's relative
+    #: bias per channel and the half-width of its interval.
+    looks: int = 1
+    relative_bias: list[float] | None = optional()
+    half_width: float | None = optional()
 
 
 @dataclass(kw_only=True)
@@ -68,7 +74,7 @@ class Convergence(Outcome):
     exact: bool
     consistent_with_mc: bool        # −1 inside the fitted interval (exact: true; none fitted: false)
     passed: bool
-    outcome: str = ""               # checks.evidence.convergence_outcome (minor version 3)
+    outcome: str = ""               # checks.convergence.convergence_outcome (minor version 3)
     message: str = ""
 
 

@@ -35,10 +35,17 @@ def write_csv(path: str, results: Results) -> None:
     files.write_text(path, buf.getvalue())
 
 
+def counts_line(results: Results) -> str:
+    """One line for CI logs: ``pass P, fail F, inconclusive I of N checks``."""
+    n = results.counts()
+    return (f"pass {n['pass']}, fail {n['fail']}, inconclusive {n['inconclusive']} "
+            f"of {len(results.checks)} checks")
+
+
 def summary(results: Results) -> str:
     """summary.md: the verdict, then a table per scene and the failures group."""
     checks, failed, n = results.checks, results.failed, results.counts()
-    lines = [f"# mcillum validation — profile {results.profile}",
+    lines = [f"# mcillum validation — profile {results.profile}: {counts_line(results)}",
              "",
              f"{n['pass']} of {len(checks)} checks pass, {n['inconclusive']} inconclusive, "
              f"{n['fail']} fail; "

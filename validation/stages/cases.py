@@ -26,7 +26,8 @@ from ..results import (BatchTest, CaseReference, CaseResult, CaseRow, SunSplit, 
                        SweepRow, TailNumbers)
 from ..run import jobs, renders, stacks
 from ..stats import metrics, statistics, tails
-from .common import REFERENCE, compile_kernels, fresh, kept_file, scene_summary
+from . import sequential
+from .common import REFERENCE, compile_kernels, kept_file, scene_summary
 
 ALPHA = statistics.ALPHA
 
@@ -112,30 +113,62 @@ def tail_numbers(ctx) -> None:
 
 def test_bias(ctx) -> None:
     """The batch-means test of each estimator's K renders against the
-    reference, read by the rules of evidence; a rejection that counts is
-    tested again on K fresh renders."""
+    reference, read by the rules of evidence and continued on fresh batches
+    until it decides or its budget is spent (stages/sequential.py)."""
     found = ctx.stacks[ctx.plan.spp]
-    decide = _decider(ctx)
+    if ctx.plan.group == "heavy_tail" and "envmap" in ctx.resolved and ctx.sun is None:
+        ctx.sun = sun.split_facts(ctx.resolved["envmap"])
     for name, row in ctx.rows.items():
         n = row.numbers
         if n is None or row.refused or n.nonfinite_values or n.negative_values:
             continue
-        n.test = _replicated_test(ctx, name, found[name].images, decide)
+        n.test = settled_test(ctx, name, found[name].images)
 
 
-def _decider(ctx):
-    """The rules of evidence for this case's renders, with path's fireflies
-    (counted once per case) as the reference's tail."""
+def _reader(ctx, name: str):
+    """``read(comparison, batches, look)``: the rules of evidence for this
+    case's renders of ``name``, with path's fireflies (counted once per
+    case) as the reference's tail. On a map with a sun, the sun is a tail
+    the renders may not have seen yet, whatever else they caught: while
+    the estimator's largest pdf expects fewer than SUN_HITS direct hits per
+    pixel in the samples so far (N·Ω·max p; or it declares no largest pdf),
+    no downward rejection counts (evidence.unseen_sun) and the test renders
+    on."""
     found = ctx.stacks[ctx.plan.spp]
     path_events = (tails.tail_events([found[REFERENCE].images], ctx.reference.mean)[0]
                    if REFERENCE in found else None)
-    return evidence.decider(ctx.reference.mean, ctx.plan.spp, path_events)
+    decide = evidence.decider(ctx.reference.mean, path_events)
+    directions = getattr(ctx.integrators[name].made, "directions", 1)
+
+    def read(comparison, batches, look):
+        d = decide(comparison, batches)
+        if ctx.sun is None:
+            return d
+        hits = expected_sun_hits(name, sequential.samples(batches) * directions,
+                                 ctx.sun["solid_angle"])
+        if hits is None or hits < evidence.SUN_HITS:
+            evidence.unseen_sun(d, comparison, hits)
+        return d
+    return read
 
 
-def _replicated_test(ctx, name: str, x: np.ndarray, decide) -> BatchTest:
-    return statistics.replicated_compare(
-        x[..., :3], ctx.reference.moments(), lambda: fresh(ctx, name)[..., :3], ALPHA,
-        decide)
+def settled_test(ctx, name: str, x: np.ndarray) -> BatchTest:
+    """The sequential test (stages/sequential.py) of estimator ``name``'s
+    renders ``x`` at the case's spp, as a :class:`BatchTest`."""
+    seq = ctx.run.sequential
+    settled, c = sequential.settle([(ctx.plan.spp, x)], ctx.reference.moments(),
+                                   _reader(ctx, name), sequential.renderer(ctx, name),
+                                   seq.case_epsilon, ctx.run.growth(seq.case_budget))
+    d = settled.decision
+    return BatchTest(passed=c.passed, pass_fraction=c.pass_fraction, min_p=c.min_p,
+                     pooled_p=[float(p) for p in c.pooled_p], alpha_pixel=c.alpha_pixel,
+                     test=c.summary(), outcome=d.outcome, reason=d.reason,
+                     tail_events=d.tail_events, samples_needed=d.samples_needed,
+                     counted_up=d.counted_up, rejected_pixels=d.rejected_up + d.rejected_down,
+                     replicated=settled.replicated,
+                     replication_test=settled.replication or None, looks=settled.looks,
+                     samples_per_pixel=settled.samples, relative_bias=d.relative_bias,
+                     half_width=d.half_width)
 
 
 # ------------------------------ The sunless twin --------------------------------
@@ -149,28 +182,28 @@ def sunless_twin(ctx) -> None:
               and row.numbers.test.outcome != "pass"]
     if not tested or ctx.plan.group != "heavy_tail" or "envmap" not in ctx.resolved:
         return
-    sunless_path, ctx.sun = sun.without_sun(ctx.resolved["envmap"])
+    sunless_path, facts = sun.without_sun(ctx.resolved["envmap"])
+    ctx.sun = ctx.sun or facts
     ctx.sunless = ctx.derive([*tested, REFERENCE], label=f"{ctx.id} sunless",
-                             streams={"renders": "sunless",
-                                      "replication": "sunless_replication"},
+                             streams={"renders": "sunless", "sequential": "sunless_sequential"},
                              envmap=sunless_path)
 
 
 def split_sun(ctx) -> None:
     """Each estimator of the sunless twin tested there by the same rules (a
     bias there is a bias, whatever the sun does), with the sun's facts and
-    the number of direct hits it expects, N·Ω·max p."""
+    the number of direct hits it expects in the samples its test reached,
+    N·Ω·max p."""
     sub = ctx.sunless
     if sub is None:
         return
-    samples = ctx.plan.seeds * ctx.plan.spp
     sunless_mean = float(sub.reference.mean[..., :3].mean())
     image_mean = float(ctx.reference.mean[..., :3].mean())
-    decide = _decider(sub)
     for name in sub.estimators[:-1]:        # those tested (the last is path, the reference)
-        test = _replicated_test(sub, name, sub.stacks[ctx.plan.spp][name].images, decide)
+        test = settled_test(sub, name, sub.stacks[ctx.plan.spp][name].images)
+        samples = ctx.rows[name].numbers.test.samples_per_pixel
         ctx.rows[name].numbers.sun = SunSplit(
-            sun=ctx.sun, sunless_passed=not (test.outcome == "fail" and test.replicated),
+            sun=ctx.sun, sunless_passed=test.outcome != "fail",
             sunless_test=test.test, sunless_reference_mean=sunless_mean,
             expected_sun_hits_per_pixel=expected_sun_hits(
                 name, samples * getattr(ctx.integrators[name].made, "directions", 1),

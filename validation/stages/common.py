@@ -16,13 +16,11 @@ import hashlib
 import json
 import os
 
-import numpy as np
-
 from mcillum.integrators import registry, scene_checks
 
 from ..plan import scenes, seeds
 from ..results import ReferenceSummary
-from ..run import jobs, references, renders, stacks
+from ..run import jobs, references, renders
 
 REFERENCE = registry.REFERENCE
 
@@ -108,16 +106,6 @@ def kept_file(ctx, what: str) -> str:
     (the points of a sweep, a case's sunless twin)."""
     tag = json.dumps(ctx.defines, sort_keys=True, default=str)
     return f"{what}-{hashlib.sha256(tag.encode()).hexdigest()[:8]}"
-
-
-def fresh(ctx, name: str, spp: int | None = None, k: int | None = None) -> np.ndarray:
-    """K new renders of one estimator at the case's spp (or ``spp``, ``k``:
-    a scene's top rung), from the context's replication stream; kept."""
-    spp, k = spp or ctx.plan.spp, k or ctx.plan.seeds
-    stream = ctx.streams["replication"]
-    return stacks.kept(ctx, kept_file(ctx, f"{stream}-{name}"), stream,
-                       {name: ctx.integrators[name]}, {name: spp}, k,
-                       seeds.stream(stream).take(k), label=ctx.label)[name].images
 
 
 # ---------------------------------- Reference -----------------------------------

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from ..plan.plans import Sequential
 from ..results import layout
 from ..run import jobs
 from ..run.executors import Local
@@ -28,6 +29,18 @@ class Run:
     progress: object = None         # progress.Progress, or None (silent)
     #: Where the renders run (run/executors.py); this process unless told.
     executor: object = field(default_factory=Local)
+    #: ``--budget``: a sequential test's budget, × its first look's samples
+    #: per pixel, for every check (None: the profile's ``[sequential]``).
+    budget: float | None = None
+
+    @property
+    def sequential(self):
+        """The profile's :class:`~mcillum.validation.plan.plans.Sequential`."""
+        return getattr(self.profile, "sequential", None) or Sequential()
+
+    def growth(self, profile_budget: float) -> float:
+        """The budget of a sequential test: ``--budget``, else the profile's."""
+        return self.budget if self.budget is not None else profile_budget
 
     def step(self, what: str, steps: int = 1) -> None:
         if self.progress is not None:
@@ -42,9 +55,10 @@ class Context:
     estimators: list[str]           # asked for, `path` last
     defines: dict = field(default_factory=dict)   # $-parameters besides res
     label: str = ""                 # what progress lines call it
-    #: Seed streams (plan/seeds.py) of its K renders and of their replication.
+    #: Seed streams (plan/seeds.py) of its K renders and of the batches a
+    #: sequential test adds (stages/sequential.py).
     streams: dict = field(default_factory=lambda: {"renders": "failure",
-                                                   "replication": "replication"})
+                                                   "sequential": "sequential"})
 
     # ----------------------- filled by the stages ---------------------------
     info: object = None             # load: plan.scenes.SceneInfo
@@ -66,7 +80,7 @@ class Context:
     rows: dict = field(default_factory=dict)          # tail_numbers …: name → CaseRow
     per_render: dict = field(default_factory=dict)    # tail_numbers: name → relMSE per seed
     sunless: "Context" = None       # cases.sunless_twin: the case on its map without the sun
-    sun: dict = None                # cases.sunless_twin: the sun's facts (envmaps.sun)
+    sun: dict = None                # cases.test_bias: the sun's facts (envmaps.sun)
     sweep_rows: list = field(default_factory=list)    # cases.sweep_rows: SweepRow per estimator
     display: "Context" = None       # speed.display: the scene at the display resolution
     speed: object = None            # speed.measure_speed: results.Speed

@@ -16,7 +16,7 @@ measured on beyond the spp ladder, at the ladder's top rung and resolution.
   write the ``posterior_std`` AOV): per pixel, the RMSE of the K renders
   against the reference over the predicted std (rms over renders, the
   reference's variance added). Median and quartiles over pixels; **calibrated**
-  if the median lies within :data:`~mcillum.validation.checks.evidence.CALIBRATED`
+  if the median lies within :data:`~mcillum.validation.checks.convergence.CALIBRATED`
   (errors within 1.5× of what
   it predicts), **over-confident** above (errors larger than predicted),
   **under-confident** below.
@@ -30,7 +30,7 @@ import numpy as np
 
 from mcillum.integrators import registry
 
-from ..checks import evidence
+from ..checks import convergence
 from ..plan import seeds
 from ..results import BiasAtN, Calibration, EqualRays, Quadrature
 from ..run import jobs, stacks
@@ -166,4 +166,4 @@ def _calibration(stack, ref) -> Calibration:
                            verdict="exact (no error and none predicted)")
     q25, median, q75 = (float(q) for q in np.quantile(ratio, [0.25, 0.5, 0.75]))
     return Calibration(median=median, q25=q25, q75=q75, pixels=int(ratio.size),
-                       verdict=evidence.calibration_verdict(median))
+                       verdict=convergence.calibration_verdict(median))

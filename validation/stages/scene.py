@@ -5,8 +5,9 @@ an spp ladder, then what they measure against the reference.
   efficiency 1 / (relMSE · seconds) per render.
 * Unbiasedness: the batch-means test of all rungs pooled against the
   reference (stats/statistics.py) and the fireflies of the estimator's
-  renders (stats/tails.py); where the rules of evidence count a rejection,
-  the same test on K fresh renders at the top rung (:func:`replicate`).
+  renders (stats/tails.py), continued on fresh batches where the rules of
+  evidence cannot decide yet, and confirmed on one where they count a
+  rejection (:func:`settle`, stages/sequential.py).
 * Convergence: least-squares fit of log relMSE against log spp over the
   ladder (relMSE averaged over the K renders at each spp, minus the part the
   reference's own noise adds, mean var_ref/(r² + ε)); the slope's (1 − α)
@@ -27,12 +28,13 @@ import numpy as np
 
 from mcillum import files
 
-from ..checks import evidence
+from ..checks import convergence, evidence
 from ..plan import seeds
 from ..results import Convergence, EstimatorResult, RunStats, SceneResult, Unbiasedness
 from ..run import stacks
 from ..stats import metrics, statistics, tails
-from .common import REFERENCE, compile_kernels, fresh, reference_summary, scene_summary
+from . import sequential
+from .common import REFERENCE, compile_kernels, reference_summary, scene_summary
 
 ALPHA = statistics.ALPHA
 
@@ -106,7 +108,9 @@ def bias_evidence(rungs: dict, reference, runs: list[RunStats], tail,
         pooled = statistics.Moments.pooled({spp: x[..., :3] for spp, x in rungs.items()})
         comparison = statistics.compare(pooled, reference.moments(), ALPHA)
     return evidence.Evidence(comparison=comparison, events=events, renders=n, samples=samples,
-                             carried=carried, reference_events=reference_events)
+                             carried=carried, reference_events=reference_events,
+                             event_value=tails.largest_event(rungs.values(), reference.mean,
+                                                             rungs.keys()))
 
 
 def unbiasedness_record(found: evidence.Evidence, top: int) -> Unbiasedness:
@@ -137,49 +141,40 @@ def convergence_fit(runs: list[RunStats], alpha: float = 0.05) -> Convergence:
                            exact=False, consistent_with_mc=False, passed=False)
     slope, _, (lo, hi) = statistics.loglog_fit(*zip(*ok), alpha)
     return Convergence(slope=float(slope), low=float(lo), high=float(hi), exact=False,
-                       consistent_with_mc=bool(lo <= evidence.EXPECTED_SLOPE <= hi),
+                       consistent_with_mc=bool(lo <= convergence.EXPECTED_SLOPE <= hi),
                        passed=bool(hi < 0))
 
 
-#: A replication renders this many times the samples of the top rung's K
-#: renders, in :data:`REPLICATION_RENDERS` × K renders.
-REPLICATION_SAMPLES = 2
-REPLICATION_RENDERS = 4
-
-
-def replication_budget(top: int, k: int) -> tuple[int, int]:
-    """(spp, renders) of a replication: :data:`REPLICATION_SAMPLES` × the
-    samples of K renders at the top rung, in :data:`REPLICATION_RENDERS` × K
-    renders. The image-mean test on K = 8 renders has 7 degrees of freedom
-    and needs |t| > 5 at its level (α/6), on 32 it needs 3.5; and a first
-    reading that rejected overstates the effect it saw (it was selected for
-    rejecting), so fresh renders with no more samples miss a real bias about
-    as often as not. Rendered only where a rejection counted: a correct
-    estimator rarely pays for it (docs/measurements.md, 2026-12-01)."""
-    renders = k * max(1, min(REPLICATION_RENDERS, top * REPLICATION_SAMPLES))
-    return max(1, top * REPLICATION_SAMPLES * k // renders), renders
-
-
-def replicate(ctx) -> None:
-    """A rejection that counts by the rules of evidence is tested again on
-    fresh renders, as many samples as the top rung's K renders
-    (:func:`replication_budget`; statistics.replicated_rejection): if it
-    does not come back, the check reads inconclusive (an α-chance alarm, or
-    a bias too small for the budget)."""
-    ref = ctx.reference
-    spp, k = replication_budget(ctx.plan.ladder[-1], ctx.plan.renders)
+def settle(ctx) -> None:
+    """Each estimator's unbiasedness test continued on fresh batches until it
+    decides or its budget is spent (stages/sequential.py): look 0 is the
+    ladder, read with path's own rejections as the control; a rejection that
+    counts is confirmed on the next batch."""
+    ref, seq = ctx.reference, ctx.run.sequential
     for name, found in ctx.evidence.items():
         if found.comparison is None:
             continue
-        first = found.first_reading()
-        if first.outcome != "fail":
-            continue
-        y = fresh(ctx, name, spp, k)[..., :3]
-        replicated, pixels, _, excused = statistics.replicated_rejection(
-            found.comparison, first, y, ref.moments(), ALPHA,
-            evidence.decider(ref.mean, spp, found.reference_events))
-        found.replication = evidence.Replication(replicated=replicated, pixels=pixels,
-                                                 excused=excused, renders=y.shape[0], spp=spp)
+        first = [(spp, ctx.stacks[spp][name].images) for spp in ctx.plan.ladder]
+        found.settled, c = sequential.settle(first, ref.moments(), _reader(found, ref.mean),
+                                             sequential.renderer(ctx, name),
+                                             seq.scene_epsilon,
+                                             ctx.run.growth(seq.scene_budget))
+        found.settled.summary = c.summary()
+
+
+def _reader(found: evidence.Evidence, reference_mean: np.ndarray):
+    """``read(comparison, batches, look)``: the rules of evidence with the
+    fireflies of every batch so far, path's as the reference's tail, and
+    path's own rejections as the control at look 0 (the ladder's seeds)."""
+    def read(c, batches, look):
+        spps, stack = [spp for spp, _ in batches], [x for _, x in batches]
+        events, k, carried = tails.tail_events(stack, reference_mean, spps)
+        first = look == 0
+        return evidence.bias_outcome(
+            c, events, k, sequential.samples(batches), carried, found.reference_events,
+            found.control if first else None, found.is_control and first,
+            tails.largest_event(stack, reference_mean, spps))
+    return read
 
 
 # ---------------------------------- Images --------------------------------------

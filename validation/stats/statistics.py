@@ -73,6 +73,20 @@ class Comparison:
     passed: bool
     pooled_diff: np.ndarray | None = None   # (C,) image mean, estimator − reference
     pooled_se: np.ndarray | None = None     # (C,) its standard error
+    pixel_diff: np.ndarray | None = None    # (H, W) estimator − reference in pixel_t's channel
+    pixel_se: np.ndarray | None = None      # (H, W) its standard error
+    reference_image_mean: np.ndarray | None = None   # (C,) the reference's image mean
+
+    def relative_bias(self) -> tuple[np.ndarray, np.ndarray]:
+        """(relative bias of the image mean per channel, the half-width of
+        its interval at the pooled test's level), both as fractions of the
+        reference's image mean (NaN where that is 0)."""
+        ref = np.asarray(self.reference_image_mean, np.float64)
+        z = stats.norm.isf(self.alpha_pooled / 2)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            scale = np.where(ref > 0, ref, np.nan)
+            return (np.asarray(self.pooled_diff) / scale,
+                    z * np.asarray(self.pooled_se) / scale)
 
     def summary(self) -> str:
         # (the test's own result; checks/evidence.py decides what a rejection means)
@@ -123,24 +137,31 @@ class Moments:
 
     mean: np.ndarray
     var: np.ndarray
-    n: int
+    n: int | np.ndarray             # renders, or per pixel channel (pooled batches)
     image_mean: np.ndarray
     image_var: np.ndarray
+    image_n: int | np.ndarray | None = None     # (None: n)
+
+    @property
+    def n_image(self):
+        return self.n if self.image_n is None else self.image_n
 
     @classmethod
-    def pooled(cls, stacks: dict) -> "Moments":
-        """All rungs of a ladder, {spp: (K, H, W, C) renders}, as one side.
+    def pooled(cls, stacks) -> "Moments":
+        """All rungs of a ladder, {spp: (K, H, W, C) renders} or a list of
+        (spp, renders) pairs (batches may share an spp), as one side.
 
-        The mean weights each rung by its samples (spp·K); the per-sample
-        variance σ² is pooled from every rung's spread, Σ spp·Σ(x − x̄)² over
-        Σ (K − 1). Expressed as n = ΣK "renders" of variance σ²·n / Σ spp·K so
-        that var/n is the variance of the pooled mean. More samples per pixel
-        than the top rung alone, so rarer events are seen before judging.
+        The mean weights each rung by its samples (spp·K); the variance of
+        the mean from each batch's own spread (:func:`_pool`),
+        with Welch–Satterthwaite degrees of freedom per pixel channel. More
+        samples per pixel than the top rung alone, so rarer events are seen
+        before judging.
         """
-        stacks = {spp: np.asarray(x, np.float64) for spp, x in stacks.items()}
-        pixel = _pool({spp: x for spp, x in stacks.items()})
-        image = _pool({spp: x.mean(axis=(1, 2)) for spp, x in stacks.items()})
-        return cls(pixel[0], pixel[1], pixel[2], image[0], image[1])
+        pairs = stacks.items() if isinstance(stacks, dict) else stacks
+        pairs = [(spp, np.asarray(x, np.float64)) for spp, x in pairs]
+        pixel = _pool(pairs)
+        image = _pool([(spp, x.mean(axis=(1, 2))) for spp, x in pairs])
+        return cls(pixel[0], pixel[1], pixel[2], image[0], image[1], image[2])
 
     @classmethod
     def of(cls, renders) -> "Moments":
@@ -152,19 +173,37 @@ class Moments:
         return cls(mean, var, n, im, iv)
 
 
-def _pool(stacks: dict):
-    """(mean, variance of one equivalent render, n) of rungs {spp: (K, ...)}."""
-    weights, total, ss, dof, n = 0.0, 0.0, 0.0, 0, 0
-    for spp, x in sorted(stacks.items()):
+def _pool(pairs):
+    """(mean, variance of one equivalent render, n) of batches [(spp, (K, ...))].
+
+    The mean weights each batch by its samples, w_b = spp_b·K_b / N. The
+    variance of that mean is Σ w_b² s_b² / K_b, each batch's own sample
+    variance s_b² (not one variance pooled over batches: a batch of few
+    samples per render misses a rare tail, and its small variance must not
+    stand for the others'). n is the Welch–Satterthwaite degrees of freedom
+    of that sum plus one, and the variance is scaled so that var / n is the
+    variance of the mean.
+    """
+    pairs = [(spp, x) for spp, x in pairs]
+    n_all = sum(spp * x.shape[0] for spp, x in pairs)
+    total, var_mean, dof_den, usable = 0.0, 0.0, 0.0, 0
+    for spp, x in pairs:
         k = x.shape[0]
-        weights += spp * k
+        w = spp * k / n_all
         total = total + spp * x.sum(axis=0)
-        ss = ss + spp * ((x - x.mean(axis=0)) ** 2).sum(axis=0)
-        dof += k - 1
-        n += k
-    if dof < 1:
+        if k < 2:
+            continue
+        usable += 1
+        v = w * w * x.var(axis=0, ddof=1) / k
+        var_mean = var_mean + v
+        dof_den = dof_den + v * v / (k - 1)
+    if usable == 0:
         raise ValueError("need at least 2 renders on some rung")
-    return total / weights, ss / dof * n / weights, n
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dof = np.where(dof_den > 0, np.asarray(var_mean) ** 2 / dof_den,
+                       sum(x.shape[0] - 1 for _, x in pairs))
+    n = np.maximum(2.0, dof + 1.0)              # per pixel channel
+    return total / n_all, var_mean * n, n
 
 
 def compare(estimator, reference, alpha: float = ALPHA,
@@ -188,17 +227,21 @@ def compare(estimator, reference, alpha: float = ALPHA,
     if n_pixels == 0:
         raise ValueError("the mask selects no pixels to test")
 
-    t, p = welch(est.mean[..., :c], est.var[..., :c], est.n,
-                 ref.mean[..., :c], ref.var[..., :c], ref.n)            # (H, W, C)
+    est_pn = np.asarray(est.n)[..., :c] if np.ndim(est.n) else est.n
+    ref_pn = np.asarray(ref.n)[..., :c] if np.ndim(ref.n) else ref.n
+    t, p = welch(est.mean[..., :c], est.var[..., :c], est_pn,
+                 ref.mean[..., :c], ref.var[..., :c], ref_pn)            # (H, W, C)
     alpha_pixel = 1.0 - (1.0 - alpha / 2) ** (1.0 / (n_pixels * n_channels))
     tested = p[mask]                                                 # (P, C)
 
     # Pooled: per channel, the mean over the whole image.
     pooled_diff = est.image_mean[:c] - ref.image_mean[:c]
-    pooled_se = np.sqrt(est.image_var[:c] / est.n + ref.image_var[:c] / ref.n)
+    est_n = np.asarray(est.n_image)[..., :c] if np.ndim(est.n_image) else est.n_image
+    ref_n = np.asarray(ref.n_image)[..., :c] if np.ndim(ref.n_image) else ref.n_image
+    pooled_se = np.sqrt(est.image_var[:c] / est_n + ref.image_var[:c] / ref_n)
     if mask.all():
-        pooled_t, pooled_p = welch(est.image_mean[:c], est.image_var[:c], est.n,
-                                   ref.image_mean[:c], ref.image_var[:c], ref.n)
+        pooled_t, pooled_p = welch(est.image_mean[:c], est.image_var[:c], est_n,
+                                   ref.image_mean[:c], ref.image_var[:c], ref_n)
     else:  # image means over a mask are not kept in Moments: pixels only
         pooled_t, pooled_p = np.zeros(c), np.ones(c)
     alpha_pooled = alpha / (2 * n_channels)
@@ -206,11 +249,16 @@ def compare(estimator, reference, alpha: float = ALPHA,
     worst = np.argmin(p, axis=-1)[..., None]
     pixel_p = np.where(mask, np.take_along_axis(p, worst, -1)[..., 0], np.nan)
     pixel_t = np.where(mask, np.take_along_axis(t, worst, -1)[..., 0], np.nan)
+    diff = est.mean[..., :c] - ref.mean[..., :c]
+    se = np.sqrt(est.var[..., :c] / est_pn + ref.var[..., :c] / ref_pn)
+    pixel_diff = np.take_along_axis(diff, worst, -1)[..., 0]
+    pixel_se = np.take_along_axis(se, worst, -1)[..., 0]
     passed = bool(tested.min() >= alpha_pixel and pooled_p.min() >= alpha_pooled)
     return Comparison(alpha, alpha_pixel, n_pixels, n_channels, pixel_p, pixel_t,
                       float((tested.min(axis=-1) >= alpha_pixel).mean()),
                       float(tested.min()), np.atleast_1d(pooled_t),
-                      np.atleast_1d(pooled_p), alpha_pooled, passed, pooled_diff, pooled_se)
+                      np.atleast_1d(pooled_p), alpha_pooled, passed, pooled_diff, pooled_se,
+                      pixel_diff, pixel_se, ref.image_mean[:c])
 
 
 def mean_interval(values, alpha: float = ALPHA) -> tuple[float, float]:
@@ -272,9 +320,9 @@ def replicated_rejection(first: Comparison, d, y, reference, alpha: float = ALPH
                          decide=None):
     """Did the rejections of ``first`` that counted (``d``, a
     :class:`checks.Decision`; None: all of them) come back in fresh renders
-    ``y``? An upward one counts when it comes back; a downward pixel only if
-    the fresh renders caught no firefly; the image mean only where the fresh
-    renders' own reading counts it (``decide(again, y)``). Returns
+    ``y``? An upward one counts when it comes back; a downward pixel only
+    where the fresh renders' tail cannot carry it; the image mean only where
+    the fresh renders' own reading counts it (``decide(again, y)``). Returns
     (replicated, pixels (H, W) that came back, the fresh comparison, whether
     a tail in the fresh renders excused a downward one)."""
     rejected = first.pixel_p < first.alpha_pixel
@@ -287,9 +335,10 @@ def replicated_rejection(first: Comparison, d, y, reference, alpha: float = ALPH
     d2 = decide(again, y)
     up = pixels_again & (first.pixel_t > 0)
     down = pixels_again & (first.pixel_t < 0)
+    if d2.tail_pixels is not None:          # a deficit the fresh renders' tail can carry
+        down = down & ~d2.tail_pixels
     counted_pooled = d2.pooled if d2.pooled is not None else np.ones_like(pooled_again)
-    replicated = bool(up.any() or (down.any() and d2.tail_events == 0)
-                      or (pooled_again & counted_pooled).any())
+    replicated = bool(up.any() or down.any() or (pooled_again & counted_pooled).any())
     excused = not replicated and bool(down.any() or pooled_again.any())
     return replicated, pixels_again, again, excused
 

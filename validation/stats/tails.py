@@ -100,6 +100,24 @@ def tail_events(stacks, reference: np.ndarray, weights=None):
     return np.asarray(events, np.int64), n, np.asarray(carried, np.float64) / max(total, 1e-300)
 
 
+def largest_event(stacks, reference: np.ndarray, spps) -> float:
+    """The largest contribution one rare event can have made to a pixel's
+    sum of samples, over every firefly of ``stacks`` (renders at ``spps``
+    samples per pixel): spp × its excess over the reference in its
+    brightest channel, since a render's pixel is the mean of its spp samples
+    and holds at least one event (0: no firefly). The rules of evidence
+    weigh a pixel's deficit in these units."""
+    largest = 0.0
+    r = reference[..., :3]
+    for x, spp in zip(stacks, spps):
+        x = np.nan_to_num(np.asarray(x[..., :3], np.float64))
+        fire = firefly_mask(x, r)
+        if fire.any():
+            excess = (x - r)[fire].max()
+            largest = max(largest, float(spp * excess))
+    return largest
+
+
 def spp_to_match(relmse_est: np.ndarray, relmse_ref: np.ndarray, spp: int,
                  boot: int = 2000, level: float = 0.9, seed: int = 0) -> SppToMatch:
     """spp an estimator needs for the mean relMSE ``path`` has at ``spp``,

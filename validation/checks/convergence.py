@@ -1,0 +1,104 @@
+"""How errors must fall: the convergence rule of a Monte Carlo estimator
+(its relMSE slope against spp), and the two rules of an estimator biased by
+design (a quadrature): its bias goes to 0, and its error bars are
+calibrated. The stages measure (stages/scene.py, stages/quadrature.py);
+checks/scene.py asks these rules for the outcome.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .evidence import TAIL_EVENTS
+
+#: The slope Monte Carlo's relMSE follows against spp.
+EXPECTED_SLOPE = -1.0
+
+#: A slope interval wider than this decides nothing (the quick profile's
+#: unbiased estimators give 0.07–0.42 with 3–4 rungs; one with a firefly in
+#: one render, 1.7).
+SLOPE_WIDTH = 0.5
+
+#: How far from the expected slope an interval may lie and still be Monte
+#: Carlo: the reference's own noise, subtracted from each rung's relMSE,
+#: bends the last rungs (−0.87 [−0.93, −0.80] for uniform sampling on
+#: probe_spheres, a pre-asymptotic ladder).
+SLOPE_TOLERANCE = 0.15
+
+
+def convergence_outcome(c, resolved: bool) -> tuple[str, str]:
+    """(outcome, message) of a :class:`results.Convergence`: pass when the
+    slope's 95 % interval is at most SLOPE_WIDTH wide, lies below 0 and
+    reaches within SLOPE_TOLERANCE of the expected −1 (consistent with
+    Monte Carlo); fail when it is that narrow and lies wholly above
+    −1 + SLOPE_TOLERANCE (too slow: a bias, or an error that does not
+    fall) and the estimator's tail is resolved (``resolved``:
+    Evidence.tail_resolved; an unseen tail flattens a slope); inconclusive
+    otherwise (too wide, an unresolved tail, or steeper than Monte Carlo)."""
+    if c.exact:
+        return "pass", "exact (zero variance at every spp)"
+    text = f"relMSE slope {c.slope:+.2f} [{c.low:+.2f}, {c.high:+.2f}]"
+    if not np.isfinite(c.low) or not np.isfinite(c.high):
+        return "inconclusive", "fewer than 3 rungs with an error above the reference's"
+    band = (EXPECTED_SLOPE - SLOPE_TOLERANCE, EXPECTED_SLOPE + SLOPE_TOLERANCE)
+    if c.high - c.low > SLOPE_WIDTH:
+        return "inconclusive", f"{text}: wider than {SLOPE_WIDTH} (the ladder cannot decide)"
+    if c.low > band[1]:
+        if not resolved:
+            return "inconclusive", (f"{text}: slower than {EXPECTED_SLOPE:+.0f}, but its tail "
+                                    f"is unresolved (fewer than {TAIL_EVENTS:.0f} fireflies per "
+                                    "pixel that holds one: an unseen tail flattens the slope)")
+        return "fail", f"{text}: slower than {EXPECTED_SLOPE:+.0f} ± {SLOPE_TOLERANCE}"
+    if c.high < band[0]:
+        return "inconclusive", (f"{text}: steeper than {EXPECTED_SLOPE:+.0f} ± "
+                                f"{SLOPE_TOLERANCE} (the reference's noise, subtracted, "
+                                "bends the top rungs)")
+    if c.high >= 0:
+        return "inconclusive", f"{text}: reaches 0"
+    return "pass", f"{text}: consistent with {EXPECTED_SLOPE:+.0f} ± {SLOPE_TOLERANCE}"
+
+
+#: Median RMSE / predicted std counted as calibrated (stages/quadrature.py).
+CALIBRATED = (0.5, 2.0)
+
+#: Outside this band the error bars fail: errors 3× the predicted std
+#: (over-confident: the bars understate the error), or bars 10× wider than
+#: the error (they say nothing). Between the bands: inconclusive.
+MISCALIBRATED = (0.1, 3.0)
+
+#: The rms bias (of the reference's rms) at the largest N that a quadrature
+#: biased by design may keep: its bias must go to 0, and at N = 256 it is
+#: within this, or the check fails (a weight 5 % off keeps 5 %).
+BIAS_LIMIT = 0.02
+
+
+def calibration_verdict(median: float) -> str:
+    """calibrated, over-confident (errors larger than predicted) or
+    under-confident, by the median measured RMSE over predicted std."""
+    if CALIBRATED[0] <= median <= CALIBRATED[1]:
+        return "calibrated"
+    return "over-confident" if median > CALIBRATED[1] else "under-confident"
+
+
+def calibration_outcome(median: float) -> str:
+    """pass inside :data:`CALIBRATED`, fail outside :data:`MISCALIBRATED`,
+    inconclusive between."""
+    if CALIBRATED[0] <= median <= CALIBRATED[1]:
+        return "pass"
+    return "inconclusive" if MISCALIBRATED[0] <= median <= MISCALIBRATED[1] else "fail"
+
+
+def bias_limit_outcome(low, high) -> tuple[str, str]:
+    """(outcome, what) of a quadrature's rms bias at the smallest (``low``)
+    and largest N (``high``, results.QuadratureBias): pass when the largest
+    N's bias is below :data:`BIAS_LIMIT` by twice its standard error; fail
+    when it is above by as much, or the bias grows with N by twice the
+    standard error of the difference; inconclusive otherwise."""
+    se = float(np.hypot(low.rms_bias_se, high.rms_bias_se))
+    if high.rms_bias - low.rms_bias > 2 * se:
+        return "fail", "the bias grows with N"
+    if high.rms_bias - 2 * high.rms_bias_se > BIAS_LIMIT:
+        return "fail", f"the bias at N = {high.directions} is above {BIAS_LIMIT:.0%}"
+    if high.rms_bias + 2 * high.rms_bias_se <= BIAS_LIMIT:
+        return "pass", f"below {BIAS_LIMIT:.0%} at N = {high.directions}"
+    return "inconclusive", f"K renders cannot tell it from {BIAS_LIMIT:.0%} at N = {high.directions}"

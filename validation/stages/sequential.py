@@ -1,0 +1,128 @@
+"""Sequential tests: a check that its first renders cannot decide renders
+more, in growing batches, until it decides or its budget is spent.
+
+Look 0 is the stage's own renders (a scene's ladder, a failure case's K
+seeds). While the rules of evidence (checks/evidence.py) read the pooled
+test as inconclusive — a rejection an unseen tail can explain, or no
+rejection but an interval on the image mean's relative bias wider than ±ε —
+a batch of fresh renders (the context's ``sequential`` seed stream, one
+block per look) doubles the samples per pixel, and the test runs again on
+everything rendered so far. Fireflies stop excusing a deficit once the
+samples make them common: the rules weigh the deficit against the largest
+event seen, and the deficit grows with the samples.
+
+**Anytime-valid.** Looking after every batch would inflate the false-fail
+rate of a test at a fixed level; look j is tested at
+
+    α_j = α · 6 / (π² (j + 1)²)          (Σ_j α_j = α)
+
+so that, by the union bound, a correct estimator fails at *some* look with
+probability at most α however many looks the budget allows (Bonferroni
+α-spending). Within a look the level is split as before (statistics.py:
+α_j/2 over the image mean's channels, α_j/2 Šidák over pixel channels).
+
+**A fail is confirmed.** A rejection that counts is tested again on the
+next batch alone (fresh seeds), at the rejected pixels and on the image mean
+(statistics.replicated_rejection): if it comes back, fail; if not, that
+batch joins the pool and the test goes on. The confirming batch is rendered
+even past the budget; a fail it does not confirm, with the budget spent, is
+inconclusive.
+
+**The budget** is a multiple of the first look's samples per pixel (the
+profile's ``[sequential]``, ``mcillum validate --budget``); at its end an
+inconclusive reading says the samples per pixel reached and, where a tail
+is to blame, about how many would see it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..checks import evidence
+from ..plan import seeds
+from ..run import stacks
+from ..stats import statistics
+from .common import kept_file
+
+#: Renders per batch at most (a case's 64 seeds become batches of 16 renders).
+BATCH_RENDERS = 16
+
+
+def level(alpha: float, look: int) -> float:
+    """The level of look ``look`` (0 = the stage's own renders): α·6/(π²(j+1)²)."""
+    return alpha * 6.0 / (math.pi ** 2 * (look + 1) ** 2)
+
+
+def samples(batches) -> int:
+    """Samples per pixel in all of ``batches`` [(spp, (K, H, W, C))]."""
+    return int(sum(spp * x.shape[0] for spp, x in batches))
+
+
+def batch(ctx, name: str, look: int, spp: int, k: int) -> tuple[int, np.ndarray]:
+    """(spp, K renders (K, H, W, 3)) of estimator ``name``: look ``look``'s
+    batch, from block ``look`` of the context's sequential stream; kept."""
+    stream = ctx.streams["sequential"]
+    images = stacks.kept(ctx, kept_file(ctx, f"{stream}-{look}-{name}"), f"{stream}[{look}]",
+                         {name: ctx.integrators[name]}, {name: spp}, k,
+                         seeds.stream(stream, look).take(k), label=ctx.label)[name].images
+    return spp, images[..., :3]
+
+
+def renderer(ctx, name: str):
+    """``more(look, spp, k)`` for :func:`settle`: :func:`batch` of ``name``."""
+    return lambda look, spp, k: batch(ctx, name, look, spp, k)
+
+
+def settle(first: list, reference, read, more, epsilon: float, growth: float,
+           alpha: float = statistics.ALPHA, looks: int = 20):
+    """The sequential test (module doc) of an estimator's renders ``first``
+    [(spp, (K, H, W, C))] against ``reference`` (the reference's
+    :class:`statistics.Moments`): ``read(comparison, batches, look)`` the
+    rules of evidence at a look (an :class:`evidence.Decision`; look −1: a
+    confirming batch alone), ``more(look, spp, k)`` the next batch's
+    (spp, renders), ``epsilon`` the pass's bound on the relative bias,
+    ``growth`` the budget as a multiple of the first look's samples,
+    ``looks`` the most looks there are seeds for. Returns
+    (:class:`evidence.Settled`, the last look's comparison)."""
+    batches = [(spp, np.asarray(x)[..., :3]) for spp, x in first]
+    start = samples(batches)
+    budget = int(start * growth)
+    k = min(BATCH_RENDERS, max(x.shape[0] for _, x in batches))
+    look, replicated, replication = 0, None, ""
+    while True:
+        c = statistics.compare(statistics.Moments.pooled(batches), reference,
+                               level(alpha, look))
+        total = samples(batches)
+        d = evidence.settle(read(c, batches, look), c, epsilon, total)
+        if d.outcome == "pass" or (d.outcome == "inconclusive" and 2 * total > budget):
+            break
+        if look + 1 >= looks:
+            break
+        spp = max(1, math.ceil(total / k))
+        new = more(look + 1, spp, k)
+        if d.outcome == "fail":
+            fresh = [new]
+            replicated, _, again, excused = statistics.replicated_rejection(
+                c, d, new[1], reference, alpha, lambda comp, y: read(comp, fresh, -1))
+            replication = (f"{'replicated' if replicated else 'not replicated'} in "
+                           f"{k} fresh renders at {spp} spp"
+                           + (" (their fireflies carry it: a tail)" if excused else ""))
+            if replicated:
+                break
+            if 2 * total > budget:
+                d.outcome = "inconclusive"
+                d.reason += f"; {replication}, and the budget is spent"
+                break
+        batches.append(new)
+        look += 1
+    if d.outcome == "inconclusive" and 2 * total > budget and "budget" not in d.reason:
+        d.reason += (f"; budget spent: {total} samples per pixel in {look + 1} looks"
+                     + ("" if d.samples_needed is None else
+                        f" (about {d.samples_needed:.2g} would decide; rerun with "
+                        f"--budget {2 ** math.ceil(math.log2(d.samples_needed / start)):g})"))
+    if d.outcome == "fail" and replication:
+        d.reason += f"; {replication}"
+    return evidence.Settled(decision=d, looks=look + 1, samples=total, budget=budget,
+                            replicated=replicated, replication=replication), c
