@@ -200,7 +200,9 @@ def conv(slope, low, high, exact=False):
     ((-0.87, -0.93, -0.80), True, "pass"),      # within the tolerance (a bent ladder)
     ((-1.5, -1.7, -1.3), True, "inconclusive"), # faster than 1/N: not Monte Carlo's
     ((-0.77, -1.74, 0.20), True, "inconclusive"),   # too wide
-    ((-0.48, -0.90, -0.05), True, "inconclusive"),  # excludes −1, too wide to fail
+    ((-0.48, -0.90, -0.05), True, "inconclusive"),  # excludes −1, far from it, not above
+    ((-0.3, -0.8, 0.2), True, "fail"),          # wholly above −0.85, narrow (1.0) enough
+    ((0.3, -0.8, 1.4), True, "inconclusive"),   # above −1 but too wide (2.2) to mean it
     ((-0.2, -0.4, 0.0), True, "fail"),          # narrow, flat: a bias floor
     ((-0.5, -0.7, -0.3), True, "fail"),
     ((-0.5, -0.7, -0.3), False, "inconclusive"),    # a tail not yet resolved

@@ -254,7 +254,8 @@ def path_at_depth_class(depth: int = 2):
 
     class PathAtDepth(mi.SamplingIntegrator):
         plugin_name = f"path_max_depth_{depth}"
-        display_name, colour, reachable, listing_order = plugin_name, None, frozenset(), 400
+        display_name, colour, listing_order = plugin_name, None, 400
+        reachable = frozenset({"delta_emitter", "delta_bsdf", "transmission"})   # path's
         max_direction_pdf = None
 
         def __init__(self, props):
