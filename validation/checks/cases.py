@@ -82,13 +82,14 @@ def verdict_line(v: str, n) -> str:
             s, hits = n.sun, n.sun.expected_sun_hits_per_pixel
             text += (f"; without the sun: {s.sunless_outcome or 'not biased'}; the sun "
                      f"({s.sun['solid_angle']:.2g} sr, {100 * s.sun_share_of_image:.0f} % of "
-                     "path's image) is expected "
-                     + (f"{hits:.2g} direct hits per pixel in all {n.samples_per_pixel} samples"
+                     "path's image) "
+                     + (f"allows at most {hits:.2g} direct hits per pixel in all "
+                        f"{t.samples_per_pixel or n.samples_per_pixel} samples"
                         if hits is not None else
-                        "to be hit an unknown number of times (its facts give no largest pdf)"))
+                        "is hit an unknown number of times (its facts give no largest pdf)"))
     elif v == NOT_REPLICATED:
-        text += (f"; {t.reason}; no rejection replicated in {n.seeds} fresh renders "
-                 f"({t.rejected_pixels} px rejected, pooled p = {min(t.pooled_p):.3g})")
+        text += (f"; {t.reason} ({t.rejected_pixels} px rejected, pooled p = "
+                 f"{min(t.pooled_p):.3g})")
     elif v in ("biased", BY_DESIGN) and n.sun is not None and not n.sun.sunless_passed:
         text += f"; biased without the sun too: {n.sun.sunless_reason}; {n.sun.sunless_test}"
     elif t is not None:

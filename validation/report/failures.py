@@ -136,7 +136,7 @@ def _failure_row(case: CaseResult, est, colours: dict) -> str:
             f"without the sun ({n.sun.sun['solid_angle']:.2g} sr, "
             f"{100 * n.sun.sun_share_of_image:.0f} % of the image): "
             + ("not biased" if n.sun.sunless_passed else "BIASED")
-            + (f"; expected sun hits/pixel {hits:.2g}" if hits is not None else ""))
+            + (f"; at most {hits:.2g} sun hits/pixel" if hits is not None else ""))
     if t is not None and t.reason and t.outcome != "pass":
         evidence.append(t.reason)
     if n.sun is not None and n.sun.sunless_reason and not n.sun.sunless_passed:
