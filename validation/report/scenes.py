@@ -188,8 +188,8 @@ def _statistics_section(scene: SceneResult, run_dir: str, colours: dict,
             tested = (f"biased by design ({100 * u.pass_fraction:.1f} % of pixels pass)",
                       f"not tested: {slope}")
         else:
-            tested = (f"{outcome(u.outcome, u.reason)} ({100 * u.pass_fraction:.1f} %)",
-                      f"{outcome(c.outcome, c.message)} {slope}")
+            tested = (f"{outcome(u.outcome, u.reason)} ({100 * u.pass_fraction:.1f} %)"
+                      + _image_bias(u), f"{outcome(c.outcome, c.message)} {slope}")
         rows.append(
             f"<tr><td>{swatch(est.name, colours)}</td>"
             f"<td>{fmt(top.relmse)} ({fmt(top.relmse / best_rel if best_rel else None, '.2f')}×)</td>"
@@ -203,7 +203,16 @@ def _statistics_section(scene: SceneResult, run_dir: str, colours: dict,
 <p>Small images, many renders: enough samples per pixel for per-pixel tests. Reference:
 <code>path</code>, {ref_info.spp} spp in {ref_info.passes} passes{capped}.</p>
 <table><tr><th>estimator</th><th>relMSE at {scene.ladder[-1]} spp (÷ best)</th><th>bias ± se</th>
-<th>unbiased (pixels passing)</th><th>slope [95 % CI]</th></tr>
+<th>unbiased (pixels passing; image-mean bias ± interval, looks)</th><th>slope [95 % CI]</th></tr>
 {''.join(rows)}</table>
 <div class=row>{charts.error_vs_spp(scene, colours)}</div>"""
 
+
+def _image_bias(u) -> str:
+    """The sequential test's image-mean bias, its interval and its looks
+    (results before minor version 8 have none)."""
+    if not u.relative_bias or u.half_width is None:
+        return ""
+    worst = max(u.relative_bias, key=abs)
+    looks = f", {u.looks} looks" if u.looks > 1 else ""
+    return f"; {100 * worst:+.2g} ± {100 * u.half_width:.2g} %{looks}"
