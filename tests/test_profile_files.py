@@ -276,6 +276,12 @@ MISTAKES = {
     "a display that is neither": (
         'name = "m"\n' + scene(extra="display = true"),
         "scenes[0].display: must be a table or false, got true (a boolean)"),
+    "a sequential budget that is not positive": (
+        'name = "m"\n[sequential]\ncase_budget = 0\n' + scene(),
+        "sequential.case_budget: must be"),
+    "an unknown key of [sequential]": (
+        'name = "m"\n[sequential]\nepsilon = 0.01\n' + scene(),
+        "unknown key 'epsilon' in sequential"),
 }
 
 

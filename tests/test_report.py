@@ -371,11 +371,18 @@ def test_strict_exit_code_counts_inconclusive_checks(tmp_path, monkeypatch, caps
     monkeypatch.setattr(pipeline, "validate", lambda *a, **k: res)
     args = ["validate", "--out", str(tmp_path / "out"), "--cache", str(tmp_path / "c")]
     assert cli.main(args) == 0
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    n = res.counts()
+    assert last == (f"PASSED: pass {n['pass']}, fail 0, inconclusive {n['inconclusive']} "
+                    f"of {len(res.checks)} checks"), last
     assert cli.main([*args, "--strict"]) == 1
-    assert "1 inconclusive, 0 fail" in capsys.readouterr().out
-    with pytest.raises(SystemExit) as exit_:
-        cli.main([*args, "--seed-set", "1000"])
-    assert exit_.value.code == 2
+    out = capsys.readouterr().out
+    assert "1 inconclusive, 0 fail" in out
+    assert out.strip().splitlines()[-1].startswith("FAILED: ") and "--strict" in out
+    for bad in (["--seed-set", "1000"], ["--budget", "0.5"]):
+        with pytest.raises(SystemExit) as exit_:
+            cli.main([*args, *bad])
+        assert exit_.value.code == 2
 
 
 @pytest.mark.parametrize("ev, text", [(-0.0, "x"), (0.04, "x"), (-0.02, "x"),
