@@ -161,7 +161,8 @@ def settled_test(ctx, name: str, x: np.ndarray) -> BatchTest:
     seq = ctx.run.sequential
     settled, c = sequential.settle([(ctx.plan.spp, x)], ctx.reference.moments(),
                                    _reader(ctx, name), sequential.renderer(ctx, name),
-                                   seq.case_epsilon, ctx.run.growth(seq.case_budget))
+                                   seq.case_epsilon, ctx.run.growth(seq.case_budget),
+                                   reference_spp=ctx.reference.spp)
     d = settled.decision
     return BatchTest(passed=c.passed, pass_fraction=c.pass_fraction, min_p=c.min_p,
                      pooled_p=[float(p) for p in c.pooled_p], alpha_pixel=c.alpha_pixel,

@@ -158,7 +158,8 @@ def settle(ctx) -> None:
         found.settled, c = sequential.settle(first, ref.moments(), _reader(found, ref.mean),
                                              sequential.renderer(ctx, name),
                                              seq.scene_epsilon,
-                                             ctx.run.growth(seq.scene_budget))
+                                             ctx.run.growth(seq.scene_budget),
+                                             reference_spp=ref.spp)
         found.settled.summary = c.summary()
 
 

@@ -30,9 +30,10 @@ even past the budget; a fail it does not confirm, with the budget spent, is
 inconclusive.
 
 **The budget** is a multiple of the first look's samples per pixel (the
-profile's ``[sequential]``, ``mcillum validate --budget``); at its end an
-inconclusive reading says the samples per pixel reached and, where a tail
-is to blame, about how many would see it.
+profile's ``[sequential]``, ``mcillum validate --budget``), and at most
+:data:`REFERENCE_LEAD` × the reference's; at its end an inconclusive
+reading says the samples per pixel reached and, where a tail is to blame,
+about how many would see it.
 """
 
 from __future__ import annotations
@@ -83,8 +84,16 @@ def renderer(ctx, name: str):
     return lambda look, spp, k: batch(ctx, name, look, spp, k)
 
 
+#: A test stops before its samples per pixel exceed this many times the
+#: reference's: beyond that the comparison rests on the reference's own
+#: unseen tail (the full profile's sun_sky at 32²: cosine sampling "brighter"
+#: at one pixel at 256× the reference's 2048 spp, confirmed at 1024×).
+REFERENCE_LEAD = 64
+
+
 def settle(first: list, reference, read, more, epsilon: float, growth: float,
-           alpha: float = statistics.ALPHA, looks: int = 20):
+           alpha: float = statistics.ALPHA, looks: int = 20,
+           reference_spp: int | None = None):
     """The sequential test (module doc) of an estimator's renders ``first``
     [(spp, (K, H, W, C))] against ``reference`` (the reference's
     :class:`statistics.Moments`): ``read(comparison, batches, look)`` the
@@ -92,11 +101,15 @@ def settle(first: list, reference, read, more, epsilon: float, growth: float,
     confirming batch alone), ``more(look, spp, k)`` the next batch's
     (spp, renders), ``epsilon`` the pass's bound on the relative bias,
     ``growth`` the budget as a multiple of the first look's samples,
-    ``looks`` the most looks there are seeds for. Returns
+    ``looks`` the most looks there are seeds for, ``reference_spp`` the
+    reference's samples per pixel (the budget stops at
+    :data:`REFERENCE_LEAD` × that). Returns
     (:class:`evidence.Settled`, the last look's comparison)."""
     batches = [(spp, np.asarray(x)[..., :3]) for spp, x in first]
     start = samples(batches)
     budget = int(start * growth)
+    if reference_spp:
+        budget = max(start, min(budget, REFERENCE_LEAD * reference_spp))
     k = min(BATCH_RENDERS, max(x.shape[0] for _, x in batches))
     look, replicated, replication = 0, None, ""
     while True:
@@ -125,11 +138,17 @@ def settle(first: list, reference, read, more, epsilon: float, growth: float,
                 break
         batches.append(new)
         look += 1
+    capped = budget < int(start * growth)
     if d.outcome == "inconclusive" and 2 * total > budget and "budget" not in d.reason:
         d.reason += (f"; budget spent: {total} samples per pixel in {look + 1} looks"
+                     + (f" (at most {REFERENCE_LEAD}× the reference's {reference_spp} spp)"
+                        if capped else "")
                      + ("" if d.samples_needed is None else
-                        f" (about {d.samples_needed:.2g} would decide; rerun with "
-                        f"--budget {2 ** math.ceil(math.log2(d.samples_needed / start)):g})"))
+                        f" (about {d.samples_needed:.2g} would decide"
+                        + ("; the reference would need as many / "
+                           f"{REFERENCE_LEAD}" if capped else
+                           f"; rerun with --budget "
+                           f"{2 ** math.ceil(math.log2(d.samples_needed / start)):g}") + ")"))
     if d.outcome == "fail" and replication:
         d.reason += f"; {replication}"
     return evidence.Settled(decision=d, looks=look + 1, samples=total, budget=budget,
