@@ -59,12 +59,6 @@ def split(rgb: np.ndarray, factor: float = SUN_FACTOR) -> tuple[np.ndarray, dict
                      "factor": factor}
 
 
-def split_facts(path: str | os.PathLike, factor: float = SUN_FACTOR) -> dict:
-    """The facts of :func:`split` of the (checked) map at ``path``."""
-    rgb, _ = safety.load(path)
-    return split(rgb, factor)[1]
-
-
 def without_sun(path: str | os.PathLike, factor: float = SUN_FACTOR) -> tuple[str, dict]:
     """Path of a cached copy of the (checked) map at ``path`` without its sun,
     and the facts of :func:`split`."""

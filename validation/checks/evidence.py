@@ -250,19 +250,23 @@ def bias_outcome(c, events: np.ndarray, renders: int, samples: int,
 
 
 
-def decider(reference_mean: np.ndarray, reference_events: np.ndarray | None):
-    """``decide(comparison, batches)``: :func:`bias_outcome` of a comparison
-    of ``batches`` ([(spp, (K, H, W, C) renders)], pooled), with their own
-    fireflies as tail evidence (sequential looks, replications and failure
-    cases)."""
-    def decide(comparison, batches):
+def decider(reference_mean: np.ndarray, reference_events: np.ndarray | None,
+            control: np.ndarray | None = None, is_control: bool = False):
+    """``read(comparison, batches, look)``: :func:`bias_outcome` of a
+    comparison of ``batches`` ([(spp, (K, H, W, C) renders)], pooled), with
+    their own fireflies as tail evidence, path's ``reference_events``, and
+    path's own rejections (``control``; ``is_control``: this is path) at
+    look 0 only — the ladder's seeds, which later batches do not share."""
+    def read(comparison, batches, look):
         spps = [spp for spp, _ in batches]
         stack = [x for _, x in batches]
         events, k, carried = tails.tail_events(stack, reference_mean, spps)
         samples = int(sum(spp * x.shape[0] for spp, x in batches))
+        first = look == 0
         return bias_outcome(comparison, events, k, samples, carried, reference_events,
-                            event_value=tails.largest_event(stack, reference_mean, spps))
-    return decide
+                            control if first else None, is_control and first,
+                            tails.largest_event(stack, reference_mean, spps))
+    return read
 
 
 def unseen_sun(d: Decision, c, hits: float | None) -> Decision:
@@ -326,18 +330,13 @@ class Evidence:
     """What the stages measured of one estimator's unbiasedness on a scene:
     the pooled test of all rungs (``comparison``; None: not tested, its
     renders hold NaN/Inf), the fireflies of its renders (``events`` per
-    pixel over ``renders`` renders of ``samples`` samples per pixel in all,
-    what they ``carried`` of the image mean, the largest one
-    ``event_value``), path's fireflies (``reference_events``) and, once
-    the sequential test has run (stages/sequential.py), its outcome
-    (``settled``)."""
+    pixel, over ``samples`` samples per pixel in all), path's fireflies
+    (``reference_events``) and, once the sequential test has run
+    (stages/sequential.py), its outcome (``settled``)."""
 
     comparison: object | None
     events: np.ndarray
-    renders: int
     samples: int
-    carried: np.ndarray
-    event_value: float = 0.0
     reference_events: np.ndarray | None = None
     #: path's own rejections on the same pixel samples (:func:`control_pixels`);
     #: ``is_control``: this is path's evidence.
@@ -346,22 +345,11 @@ class Evidence:
     settled: Settled | None = None
 
     @property
-    def heavy(self) -> bool:
-        """Its renders hold a firefly."""
-        return bool(self.events.any())
-
-    @property
     def tail_resolved(self) -> bool:
         """No firefly, or as many per pixel that holds one as a test needs
         to see a tail (:data:`TAIL_EVENTS`): one firefly is no evidence."""
         held = int((self.events > 0).sum())
         return held == 0 or self.events.sum() >= TAIL_EVENTS * held
-
-    def first_reading(self) -> Decision:
-        """:func:`bias_outcome` of the pooled test (the first look)."""
-        return bias_outcome(self.comparison, self.events, self.renders, self.samples,
-                            self.carried, self.reference_events, self.control,
-                            self.is_control, self.event_value)
 
 
 @dataclass(kw_only=True)
@@ -381,8 +369,8 @@ class Settled:
 
 def unbiasedness(e: Evidence) -> Decision:
     """The verdict on an estimator's unbiasedness on a scene: the sequential
-    test's (:class:`Settled`), else the first reading of its pooled test by
-    the rules above; not tested (NaN/Inf in its renders) is a fail."""
+    test's (:class:`Settled`); not tested (NaN/Inf in its renders) is a
+    fail."""
     if e.comparison is None:
         return Decision(outcome="fail", reason="non-finite pixels")
-    return e.settled.decision if e.settled is not None else e.first_reading()
+    return e.settled.decision

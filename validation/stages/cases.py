@@ -117,7 +117,7 @@ def test_bias(ctx) -> None:
     until it decides or its budget is spent (stages/sequential.py)."""
     found = ctx.stacks[ctx.plan.spp]
     if ctx.plan.group == "heavy_tail" and "envmap" in ctx.resolved and ctx.sun is None:
-        ctx.sun = sun.split_facts(ctx.resolved["envmap"])
+        ctx.sunless_map, ctx.sun = sun.without_sun(ctx.resolved["envmap"])
     for name, row in ctx.rows.items():
         n = row.numbers
         if n is None or row.refused or n.nonfinite_values or n.negative_values:
@@ -138,13 +138,13 @@ def _reader(ctx, name: str):
     path_events = (tails.tail_events([found[REFERENCE].images], ctx.reference.mean)[0]
                    if REFERENCE in found else None)
     decide = evidence.decider(ctx.reference.mean, path_events)
-    directions = getattr(ctx.integrators[name].made, "directions", 1)
+    directions = _directions(ctx, name)
     # an estimator that samples the emitters (it reaches point lights) finds
     # the sun by construction: it has no unseen sun to plead
     samples_emitters = "delta_emitter" in registry.facts(name).reachable
 
     def read(comparison, batches, look):
-        d = decide(comparison, batches)
+        d = decide(comparison, batches, look)
         if ctx.sun is None or samples_emitters:
             return d
         hits = expected_sun_hits(name, sequential.samples(batches) * directions,
@@ -186,11 +186,9 @@ def sunless_twin(ctx) -> None:
               and row.numbers.test.outcome != "pass"]
     if not tested or ctx.plan.group != "heavy_tail" or "envmap" not in ctx.resolved:
         return
-    sunless_path, facts = sun.without_sun(ctx.resolved["envmap"])
-    ctx.sun = ctx.sun or facts
     ctx.sunless = ctx.derive([*tested, REFERENCE], label=f"{ctx.id} sunless",
                              streams={"renders": "sunless", "sequential": "sunless_sequential"},
-                             envmap=sunless_path)
+                             envmap=ctx.sunless_map)
 
 
 def split_sun(ctx) -> None:
@@ -210,10 +208,14 @@ def split_sun(ctx) -> None:
             sun=ctx.sun, sunless_passed=test.outcome != "fail",
             sunless_test=test.test, sunless_reference_mean=sunless_mean,
             expected_sun_hits_per_pixel=expected_sun_hits(
-                name, samples * getattr(ctx.integrators[name].made, "directions", 1),
-                ctx.sun["solid_angle"]),
+                name, samples * _directions(ctx, name), ctx.sun["solid_angle"]),
             sun_share_of_image=1.0 - sunless_mean / image_mean, sunless_outcome=test.outcome,
             sunless_reason=test.reason)
+
+
+def _directions(ctx, name: str) -> int:
+    """Directions per camera sample of estimator ``name`` (N for a point set)."""
+    return getattr(ctx.integrators[name].made, "directions", 1)
 
 
 def expected_sun_hits(name: str, samples: int, solid_angle: float) -> float | None:

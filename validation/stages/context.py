@@ -81,6 +81,7 @@ class Context:
     per_render: dict = field(default_factory=dict)    # tail_numbers: name → relMSE per seed
     sunless: "Context" = None       # cases.sunless_twin: the case on its map without the sun
     sun: dict = None                # cases.test_bias: the sun's facts (envmaps.sun)
+    sunless_map: str = None         # cases.test_bias: the map without its sun (a file)
     sweep_rows: list = field(default_factory=list)    # cases.sweep_rows: SweepRow per estimator
     display: "Context" = None       # speed.display: the scene at the display resolution
     speed: object = None            # speed.measure_speed: results.Speed

@@ -53,12 +53,12 @@ def measure(ctx) -> None:
     ladder, ref = ctx.plan.ladder, ctx.reference
     rungs = {name: {spp: ctx.stacks[spp][name].images for spp in ladder}
              for name in ctx.integrators}
-    tail = {name: tails.tail_events(s.values(), ref.mean, s.keys())
-            for name, s in rungs.items()}
-    path_events = tail[REFERENCE][0] if REFERENCE in tail else None   # the reference's tail
+    events = {name: tails.tail_events(s.values(), ref.mean, s.keys())[0]
+              for name, s in rungs.items()}
+    path_events = events.get(REFERENCE)                     # the reference's tail
     for name in ctx.integrators:
         runs = [run_stats(ctx.stacks[spp][name], ref) for spp in ladder]
-        found = ctx.evidence[name] = bias_evidence(rungs[name], ref, runs, tail[name],
+        found = ctx.evidence[name] = bias_evidence(rungs[name], ref, runs, events[name],
                                                    path_events)
         ctx.measured[name] = EstimatorResult(
             name=name, params=dict(ctx.integrators[name].params),
@@ -94,23 +94,20 @@ def run_stats(stack, reference) -> RunStats:
         firefly_fraction=tails.firefly_fraction(np.nan_to_num(x), r))
 
 
-def bias_evidence(rungs: dict, reference, runs: list[RunStats], tail,
+def bias_evidence(rungs: dict, reference, runs: list[RunStats], events: np.ndarray,
                   reference_events: np.ndarray | None) -> evidence.Evidence:
     """The batch-means test of all rungs ``rungs`` ({spp: (K, H, W, C)}) pooled,
     each weighted by its samples, against the reference, with the fireflies
-    ``tail`` (tails.tail_events of the rungs, weighted by spp) and path's
+    per pixel ``events`` (tails.tail_events of the rungs) and path's
     ``reference_events``; not tested (comparison None) where a render holds
     NaN/Inf."""
-    events, n, carried = tail
     samples = int(sum(spp * x.shape[0] for spp, x in rungs.items()))
     comparison = None
     if all(r.nonfinite_fraction == 0 for r in runs):
         pooled = statistics.Moments.pooled({spp: x[..., :3] for spp, x in rungs.items()})
         comparison = statistics.compare(pooled, reference.moments(), ALPHA)
-    return evidence.Evidence(comparison=comparison, events=events, renders=n, samples=samples,
-                             carried=carried, reference_events=reference_events,
-                             event_value=tails.largest_event(rungs.values(), reference.mean,
-                                                             rungs.keys()))
+    return evidence.Evidence(comparison=comparison, events=events, samples=samples,
+                             reference_events=reference_events)
 
 
 def unbiasedness_record(found: evidence.Evidence, top: int) -> Unbiasedness:
@@ -155,27 +152,14 @@ def settle(ctx) -> None:
         if found.comparison is None:
             continue
         first = [(spp, ctx.stacks[spp][name].images) for spp in ctx.plan.ladder]
-        found.settled, c = sequential.settle(first, ref.moments(), _reader(found, ref.mean),
+        read = evidence.decider(ref.mean, found.reference_events, found.control,
+                                found.is_control)
+        found.settled, c = sequential.settle(first, ref.moments(), read,
                                              sequential.renderer(ctx, name),
                                              seq.scene_epsilon,
                                              ctx.run.growth(seq.scene_budget),
                                              reference_spp=ref.spp)
         found.settled.summary = c.summary()
-
-
-def _reader(found: evidence.Evidence, reference_mean: np.ndarray):
-    """``read(comparison, batches, look)``: the rules of evidence with the
-    fireflies of every batch so far, path's as the reference's tail, and
-    path's own rejections as the control at look 0 (the ladder's seeds)."""
-    def read(c, batches, look):
-        spps, stack = [spp for spp, _ in batches], [x for _, x in batches]
-        events, k, carried = tails.tail_events(stack, reference_mean, spps)
-        first = look == 0
-        return evidence.bias_outcome(
-            c, events, k, sequential.samples(batches), carried, found.reference_events,
-            found.control if first else None, found.is_control and first,
-            tails.largest_event(stack, reference_mean, spps))
-    return read
 
 
 # ---------------------------------- Images --------------------------------------

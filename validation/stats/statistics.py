@@ -184,7 +184,6 @@ def _pool(pairs):
     of that sum plus one, and the variance is scaled so that var / n is the
     variance of the mean.
     """
-    pairs = [(spp, x) for spp, x in pairs]
     n_all = sum(spp * x.shape[0] for spp, x in pairs)
     total, var_mean, dof_den, usable = 0.0, 0.0, 0.0, 0
     for spp, x in pairs:
@@ -204,6 +203,12 @@ def _pool(pairs):
                        sum(x.shape[0] - 1 for _, x in pairs))
     n = np.maximum(2.0, dof + 1.0)              # per pixel channel
     return total / n_all, var_mean * n, n
+
+
+def _channels(n, c: int):
+    """Renders ``n`` of one side: a number, or per channel (pooled batches,
+    :func:`_pool`) cut to the ``c`` channels tested."""
+    return np.asarray(n)[..., :c] if np.ndim(n) else n
 
 
 def compare(estimator, reference, alpha: float = ALPHA,
@@ -227,8 +232,7 @@ def compare(estimator, reference, alpha: float = ALPHA,
     if n_pixels == 0:
         raise ValueError("the mask selects no pixels to test")
 
-    est_pn = np.asarray(est.n)[..., :c] if np.ndim(est.n) else est.n
-    ref_pn = np.asarray(ref.n)[..., :c] if np.ndim(ref.n) else ref.n
+    est_pn, ref_pn = _channels(est.n, c), _channels(ref.n, c)
     t, p = welch(est.mean[..., :c], est.var[..., :c], est_pn,
                  ref.mean[..., :c], ref.var[..., :c], ref_pn)            # (H, W, C)
     alpha_pixel = 1.0 - (1.0 - alpha / 2) ** (1.0 / (n_pixels * n_channels))
@@ -236,8 +240,7 @@ def compare(estimator, reference, alpha: float = ALPHA,
 
     # Pooled: per channel, the mean over the whole image.
     pooled_diff = est.image_mean[:c] - ref.image_mean[:c]
-    est_n = np.asarray(est.n_image)[..., :c] if np.ndim(est.n_image) else est.n_image
-    ref_n = np.asarray(ref.n_image)[..., :c] if np.ndim(ref.n_image) else ref.n_image
+    est_n, ref_n = _channels(est.n_image, c), _channels(ref.n_image, c)
     pooled_se = np.sqrt(est.image_var[:c] / est_n + ref.image_var[:c] / ref_n)
     if mask.all():
         pooled_t, pooled_p = welch(est.image_mean[:c], est.image_var[:c], est_n,
