@@ -99,7 +99,9 @@ drjit {html.escape(res.drjit_version)} · profile <b>{html.escape(res.profile)}<
 <p>Scenes: {toc} · <a href="#failures">where methods fail</a> · <a href="#summary">summary</a></p>
 <p>Each estimator renders every scene K times per spp; Mitsuba's <code>path</code> at the same
 max_depth is the reference. Unbiasedness: per-pixel Welch tests with each side's own variance
-(Šidák-corrected) and an image-mean test, family-wise α = {res.alpha}.
+(Šidák-corrected) and an image-mean test, family-wise α = {res.alpha} spent over the looks of
+a sequential test that renders on until it decides; a pass means the image mean is unbiased
+within the profile's ±ε, which each check's message states.
 relMSE = mean (x−r)²/(r²+{metrics.EPSILON}); efficiency = 1/(relMSE·time).</p>
 {_estimators(res, colours)}
 {body}

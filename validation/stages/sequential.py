@@ -138,18 +138,25 @@ def settle(first: list, reference, read, more, epsilon: float, growth: float,
                 break
         batches.append(new)
         look += 1
-    capped = budget < int(start * growth)
     if d.outcome == "inconclusive" and 2 * total > budget and "budget" not in d.reason:
-        d.reason += (f"; budget spent: {total} samples per pixel in {look + 1} looks"
-                     + (f" (at most {REFERENCE_LEAD}× the reference's {reference_spp} spp)"
-                        if capped else "")
-                     + ("" if d.samples_needed is None else
-                        f" (about {d.samples_needed:.2g} would decide"
-                        + ("; the reference would need as many / "
-                           f"{REFERENCE_LEAD}" if capped else
-                           f"; rerun with --budget "
-                           f"{2 ** math.ceil(math.log2(d.samples_needed / start)):g}") + ")"))
+        d.reason += _spent(d, total, look + 1, start, budget < int(start * growth),
+                           reference_spp)
     if d.outcome == "fail" and replication:
         d.reason += f"; {replication}"
     return evidence.Settled(decision=d, looks=look + 1, samples=total, budget=budget,
                             replicated=replicated, replication=replication), c
+
+
+def _spent(d, total: int, looks: int, start: int, capped: bool, reference_spp) -> str:
+    """What an inconclusive reading adds when its budget is spent: the samples
+    reached, whether the reference capped them, and what would decide."""
+    text = f"; budget spent: {total} samples per pixel in {looks} looks"
+    if capped:
+        text += f" (at most {REFERENCE_LEAD}× the reference's {reference_spp} spp)"
+    if d.samples_needed is None:
+        return text
+    text += f" (about {d.samples_needed:.2g} would decide; "
+    if capped:
+        return text + (f"a reference of about {d.samples_needed / REFERENCE_LEAD:.2g} spp "
+                       "would allow it)")
+    return text + f"rerun with --budget {2 ** math.ceil(math.log2(d.samples_needed / start)):g})"
