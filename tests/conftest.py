@@ -170,12 +170,20 @@ def batch(scene, integrator, spp: int, k: int, first_seed: int = 0) -> np.ndarra
 def disagreements(first: dict, second: dict, first_ranking, second_ranking,
                   tolerance: float = 0.15) -> list[str]:
     """What two runs of the speed stage disagree on: efficiency ratios against
-    `path` ({name: Ratio}) more than ``tolerance`` apart, and pairs that one
-    run separates one way and the other the other way (costs.separated)."""
+    `path` ({name: Ratio}) more than ``tolerance`` apart where both runs call
+    the figure unbiased (results.KINDS) and state intervals narrower than
+    ± ``tolerance``, and pairs that one run separates one way and the other
+    the other way (costs.separated)."""
     from mcillum.validation.stats import costs
+
+    def sharp(r) -> bool:
+        return getattr(r, "kind", "unbiased") == "unbiased" and \
+            r.ci.high / r.ratio - 1 <= tolerance and 1 - r.ci.low / r.ratio <= tolerance
+
     out = [f"{n}: efficiency ÷ path {r.ratio:.3g} then {second[n].ratio:.3g}"
            for n, r in first.items()
-           if n in second and abs(second[n].ratio / r.ratio - 1) > tolerance]
+           if n in second and sharp(r) and sharp(second[n])
+           and abs(second[n].ratio / r.ratio - 1) > tolerance]
     out += [f"{a} beat {b}, then {b} beat {a}"
             for a, b in costs.separated(first_ranking)
             if (b, a) in costs.separated(second_ranking)]

@@ -127,16 +127,44 @@ def test_budgets_grow_until_the_fixed_cost_is_a_tenth():
 def test_two_runs_are_compared_on_ratios_and_reversed_pairs():
     from mcillum.validation.results import Placement, Ratio
     first = {"a": Ratio(ratio=2.0, ci=Interval(1.8, 2.2)),
-             "b": Ratio(ratio=0.5, ci=Interval(0.4, 0.6)),
+             "b": Ratio(ratio=0.5, ci=Interval(0.46, 0.54)),
              "path": Ratio(ratio=1.0, ci=Interval(0.9, 1.1))}
     ranked = [Placement(estimator="a", rank=1, tied_with=[]),
               Placement(estimator="path", rank=2, tied_with=["b"]),
               Placement(estimator="b", rank=2, tied_with=["path"])]
     assert costs.separated(ranked) == {("a", "path"), ("a", "b")}
     assert disagreements(first, first, ranked, ranked) == []
-    drifted = {**first, "b": Ratio(ratio=0.59, ci=Interval(0.5, 0.7))}          # +18 %
+    drifted = {**first, "b": Ratio(ratio=0.59, ci=Interval(0.54, 0.64))}        # +18 %
     reversed_ = [Placement(estimator="b", rank=1, tied_with=[]),
                  Placement(estimator="a", rank=2, tied_with=[]),
                  Placement(estimator="path", rank=3, tied_with=[])]
     found = disagreements(first, drifted, ranked, reversed_)
     assert len(found) == 2 and "b: efficiency" in found[0] and "a beat b" in found[1]
+    # a run that states an interval wider than ±15 % claims no such agreement,
+    # nor does a figure the reference's noise bounds (a lower bound)
+    vague = {**first, "b": Ratio(ratio=0.59, ci=Interval(0.45, 0.77))}
+    bound = {**first, "b": Ratio(ratio=0.59, ci=Interval(0.55, 0.63),
+                                 kind="reference_limited")}
+    assert disagreements(first, vague, ranked, ranked) == []
+    assert disagreements(first, bound, ranked, ranked) == []
+
+
+def test_a_missed_budget_is_corrected_toward_it_in_bounded_steps():
+    """speed.corrected: the next try's spp from the last try's median and
+    the model's fixed cost; none where the median is within ±10 % or 1 spp
+    is already too slow; a step is at most ×2 either way, so one try slowed
+    by the machine's load cannot send an estimator to 1 spp."""
+    from mcillum.validation.results import Try
+    model = costs.fit_cost({4: [A + B * 4] * 3, 16: [A + B * 16] * 3})
+    budget = A + B * 40
+
+    def at(spp, factor=1.0):
+        return Try(spp=spp, wall_seconds=[(A + B * spp) * factor] * 4)
+
+    assert speed.corrected(model, [at(40)], budget) is None
+    assert speed.corrected(model, [at(40, 1.05)], budget) is None
+    slow = speed.corrected(model, [at(40, 1.3)], budget)
+    assert slow < 40 and abs((A + B * slow) * 1.3 - budget) <= 0.1 * budget
+    assert speed.corrected(model, [at(40, 0.2)], budget) == 80           # at most ×2
+    assert speed.corrected(model, [at(40, 8.0)], budget) == 20           # at most ÷2
+    assert speed.corrected(model, [at(1, 1.0)], A / 2) is None          # 1 spp too slow

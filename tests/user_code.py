@@ -34,3 +34,33 @@ class MyDirectBroken(MyDirect):
 mi.register_integrator("my_direct", lambda props: MyDirect(props))
 mi.register_integrator("my_direct_broken", lambda props: MyDirectBroken(props))
 '''
+
+#: Mitsuba's path tracer rendering every image twice and keeping the first:
+#: the same error as `path` at twice the cost, fixed cost included, so an
+#: efficiency against `path` whose truth is known (test_validate.py).
+TWICE_PATH = '''
+import drjit as dr
+import mitsuba as mi
+
+
+class TwicePath(mi.SamplingIntegrator):
+    def __init__(self, props):
+        super().__init__(props)
+        inner = {"type": "path"}
+        for key in ("max_depth", "rr_depth", "hide_emitters"):
+            if key in props:
+                inner[key] = props[key]
+        self.inner = mi.load_dict(inner)
+
+    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        kept = self.inner.render(scene, sensor, seed, spp, develop, evaluate)
+        thrown = self.inner.render(scene, sensor, seed + 1, spp, develop, evaluate)
+        dr.eval(kept, thrown)
+        return kept
+
+    def sample(self, scene, sampler, ray, medium=None, active=True):
+        return self.inner.sample(scene, sampler, ray, medium, active)
+
+
+mi.register_integrator("twice_path", lambda props: TwicePath(props))
+'''

@@ -196,12 +196,16 @@ def validate(profile_name="quick", scene_names=None, estimators=None,
             finally:
                 bar.close()
             where = ex.record()
+        seconds = time.perf_counter() - start
+        first = _first_wall_seconds(json_path, run) if before is not None else None
         out = results.Results(
             created=time.strftime("%Y-%m-%dT%H:%M:%S%z"), profile=profile.name,
             variant=variant, mitsuba_version=mi.__version__, drjit_version=dr.__version__,
             machine=_machine(), alpha=statistics.ALPHA,
             reference_fraction=profile.reference_fraction,
-            wall_seconds=time.perf_counter() - start, scenes=scene_results, checks=checks,
+            wall_seconds=first if first is not None else seconds,
+            rerun_seconds=seconds if first is not None else None,
+            scenes=scene_results, checks=checks,
             failures=case_results,
             estimator_facts=estimator_facts([*estimators, *cases_estimators]),
             seed_set=seed_set, executor=where, definitions=dict(metrics.DEFINITIONS))
@@ -255,6 +259,20 @@ def _user_scene_labels(paths) -> list[str]:
 def _machine() -> dict:
     return {"platform": platform.platform(), "processor": platform.processor(),
             "cpus": os.cpu_count(), "python": platform.python_version()}
+
+
+def _first_wall_seconds(json_path: str, run: Run) -> float | None:
+    """The wall time of the run whose renders this one reused, where this
+    one rendered nothing of its own (a re-run into a finished directory:
+    its own few seconds are ``rerun_seconds``); None otherwise."""
+    if run.rendered or not run.kept:
+        return None
+    try:
+        with open(json_path, encoding="utf-8") as f:
+            seconds = json.load(f).get("wall_seconds")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return float(seconds) if isinstance(seconds, (int, float)) else None
 
 
 def _stamp(path: str):

@@ -23,6 +23,8 @@ from .quadrature import BiasAtN, Calibration, EqualRays, Quadrature  # noqa: F40
 from .run import MINOR_VERSION, SCHEMA, VERSION, EstimatorInfo, Results  # noqa: F401
 from .scene import (Convergence, EstimatorResult, RunStats, SceneResult,  # noqa: F401
                     Unbiasedness)
-from .speed import Budget, BudgetRun, CostModel, Interval, Placement, Ratio, Speed  # noqa: F401
-from .tables import (CSV_FIELDS, counts_line, quadrature_summary, ranking_text, speed_summary,  # noqa: F401
-                     summary, write_csv, write_junit, write_summary)
+from .speed import (KINDS, Budget, BudgetRun, CostModel, Interval, Placement, Ratio,  # noqa: F401
+                    Speed, Try)
+from .tables import (CSV_FIELDS, counts_line, quadrature_summary, ranking_text,  # noqa: F401
+                     ratio_text, speed_summary, summary, wall_text, write_csv,
+                     write_junit, write_summary)

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from .cases import CaseResult
-from .common import OUTCOMES, Check, having
+from .common import OUTCOMES, Check, having, optional
 from .scene import SceneResult
 
 SCHEMA = "mcillum.results"
@@ -26,7 +26,11 @@ VERSION = 1
 #: 8: sequential tests: unbiasedness and each failure-case test carry
 #: ``looks``, ``relative_bias`` and ``half_width``; a failure-case test its
 #: ``samples_per_pixel`` reached.
-MINOR_VERSION = 8
+#: 9: the speed stage's efficiency is net of the reference's noise, each
+#: ratio has a ``kind``, each budget run its ``tries`` (corrections toward
+#: the budget) and the stage the load other processes put on the machine
+#: (``others_cores``, ``cores``, ``loaded``); ``rerun_seconds``.
+MINOR_VERSION = 9
 
 
 @dataclass(kw_only=True)
@@ -50,6 +54,9 @@ class Results:
     machine: dict
     alpha: float
     reference_fraction: float
+    #: The run that rendered: a re-run into a finished directory that
+    #: rendered nothing keeps the first run's and records its own as
+    #: ``rerun_seconds``.
     wall_seconds: float
     scenes: list[SceneResult]
     checks: list[Check]
@@ -60,6 +67,7 @@ class Results:
     executor: dict = field(default_factory=lambda: {"kind": "local"})
     #: What each metric means (stats/metrics.py: ``DEFINITIONS``).
     definitions: dict[str, str] = field(default_factory=dict)
+    rerun_seconds: float | None = optional()
     schema: str = SCHEMA
     version: int = VERSION
     minor_version: int = MINOR_VERSION

@@ -29,8 +29,22 @@ class CostModel:
 
 
 @dataclass(kw_only=True)
+class Try:
+    """One set of K timed renders of an estimator at a budget: the spp the
+    cost model (first try) or the times of the tries before (secant)
+    chose, and what they took."""
+
+    spp: int
+    wall_seconds: list[float]
+    #: Cores other processes used on average meanwhile (run/load.py; None:
+    #: unknown, not Linux).
+    others_cores: float | None = None
+
+
+@dataclass(kw_only=True)
 class BudgetRun:
-    """K renders of one estimator at one time budget."""
+    """K renders of one estimator at one time budget: the try whose median
+    came nearest the budget."""
 
     spp: int
     wall_seconds: list[float]
@@ -39,6 +53,8 @@ class BudgetRun:
     relmse_per_render: list[float]
     on_budget: bool                     # median wall time within ±10 % of the budget
     note: str | None = optional()      # why not, where it is not
+    #: Every try in order, the measured one among them (minor version 9).
+    tries: list[Try] = field(default_factory=list)
 
 
 @dataclass(kw_only=True)
@@ -49,12 +65,24 @@ class Budget:
     path_spp: int
     estimators: dict[str, BudgetRun]
     reference_relmse: float             # relMSE the reference's own noise adds
+    reference_relmse_se: float = 0.0   # its standard error (stats/costs.py)
+
+
+#: What an efficiency figure means (Ratio.kind).
+KINDS = {
+    "unbiased": "1/(relMSE·t), relMSE net of the reference's noise",
+    "reference_limited": "its error is within 2x of the reference's own noise: "
+                         "a lower bound (the estimator may be exact here)",
+    "biased": "biased by design: relMSE includes bias², which more time does not "
+              "remove, so the figure holds at this budget only",
+}
 
 
 @dataclass(kw_only=True)
 class Ratio:
     ratio: float
-    ci: Interval
+    ci: Interval                        # high = inf: a lower bound
+    kind: str = "unbiased"              # a key of KINDS (minor version 9)
 
 
 @dataclass(kw_only=True)
@@ -85,4 +113,9 @@ class Speed:
     #: The nodes whose renders were timed (one, unless a worker moved;
     #: run/executors.py).
     timed_on: list[str] = field(default_factory=list)
+    #: Cores other processes used on average during the timed renders
+    #: (cost model and budgets; run/load.py), of ``cores``; None: unknown.
+    others_cores: float | None = optional()
+    cores: int | None = optional()
+    loaded: bool = False                # others_cores above LOADED (stages/speed.py)
 

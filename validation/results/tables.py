@@ -8,13 +8,15 @@ import csv
 import io
 from xml.sax.saxutils import escape, quoteattr
 
+import numpy as np
+
 from mcillum import files
 
 from . import layout
 from .cases import CaseResult
 from .quadrature import Quadrature
 from .run import Results
-from .speed import Placement, Speed
+from .speed import KINDS, Placement, Speed
 
 
 CSV_FIELDS = ["scene", "estimator", "spp", "renders", "relmse", "mse", "mape", "bias",
@@ -50,7 +52,7 @@ def summary(results: Results) -> str:
              f"{n['pass']} of {len(checks)} checks pass, {n['inconclusive']} inconclusive, "
              f"{n['fail']} fail; "
              f"{results.variant}, mitsuba {results.mitsuba_version}, "
-             f"drjit {results.drjit_version}, {results.wall_seconds:.0f} s.", ""]
+             f"drjit {results.drjit_version}, {wall_text(results)}.", ""]
     for scene in results.scenes:
         ref = scene.reference
         capped = f", capped: {ref.capped}" if ref.capped else ""
@@ -131,6 +133,28 @@ def quadrature_summary(q: Quadrature) -> str:
     return f"{q.name} (N = {q.directions}, {q.spp} spp): " + "; ".join(parts) + "."
 
 
+def wall_text(results: Results) -> str:
+    """The run's wall time, and a re-run's own where it rendered nothing."""
+    again = (f" (re-run into the finished directory: {results.rerun_seconds:.0f} s, "
+             "nothing rendered)" if results.rerun_seconds is not None else "")
+    return f"{results.wall_seconds:.0f} s{again}"
+
+
+def ratio_text(r) -> str:
+    """An efficiency ratio (speed.Ratio) as the summary and the report show
+    it: "0.48 [0.39, 0.59]"; a lower bound (the error is the reference's
+    noise) as "≥ 2.1 (reference-limited)"; an estimator biased by design's
+    with "(biased: this budget only)"."""
+    if r is None or not np.isfinite(r.ratio):
+        return "—"
+    if not np.isfinite(r.ci.high):
+        return f"≥ {r.ci.low:.3g} (reference-limited)"
+    text = f"{r.ratio:.3g} [{r.ci.low:.3g}, {r.ci.high:.3g}]"
+    extra = {"reference_limited": " (reference-limited)",
+             "biased": " (biased: this budget only)"}.get(r.kind, "")
+    return text + extra
+
+
 def speed_summary(speed: Speed) -> list[str]:
     """The speed stage's lines of summary.md: budgets, ratios, ranking, notes."""
     top = speed.budgets[-1]
@@ -140,13 +164,14 @@ def speed_summary(speed: Speed) -> list[str]:
              "| estimator | spp | wall ms (median) | relMSE [95% CI] | efficiency ÷ path [95% CI] |",
              "|---|---|---|---|---|"]
     for name, run in top.estimators.items():
-        r = speed.efficiency_vs_path.get(name)
-        ratio = f"{r.ratio:.3g} [{r.ci.low:.3g}, {r.ci.high:.3g}]" if r else "—"
+        ratio = ratio_text(speed.efficiency_vs_path.get(name))
         wall = sorted(run.wall_seconds)[len(run.wall_seconds) // 2] * 1e3
         lines.append(f"| {name} | {run.spp} | {wall:.0f}{'' if run.on_budget else ' (off budget)'}"
                      f" | {run.relmse:.3g} [{run.relmse_ci.low:.3g}, {run.relmse_ci.high:.3g}]"
                      f" | {ratio} |")
-    return lines + [f"- {n}" for n in speed.notes]
+    return lines + [f"- {n}" for n in speed.notes] + \
+        [f"- efficiency: {k.replace('_', '-')}: {v}" for k, v in KINDS.items()
+         if any(r.kind == k for r in speed.efficiency_vs_path.values()) and k != "unbiased"]
 
 
 def _failure_cells(case: CaseResult, est) -> str:

@@ -28,6 +28,7 @@ from mcillum.errors import IntegratorError, SceneError, message, plugin_not_foun
 from mcillum.errors import unreferenced_properties, unused_defines
 
 from ..plan import scene_files, scenes
+from . import load
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
 
@@ -246,6 +247,8 @@ class Render:
     #: each (H, W, k); bayesian_hemisphere's ``posterior_var`` and
     #: ``sample_sq`` also give ``posterior_std``, each pixel's error bar.
     aovs: dict = field(default_factory=dict)
+    #: CPU seconds other processes used meanwhile (run/load.py; None: unknown).
+    others_seconds: float | None = None
 
 
 def split_aovs(image: np.ndarray, names, spp: int = 1) -> tuple[np.ndarray, dict]:
@@ -276,14 +279,16 @@ def render(scene: mi.Scene, integrator: mi.Integrator, spp: int, seed: int = 0) 
     # integrators fail when spp does not divide into their pass count.
     plan = [spp] if registry.is_estimator(integrator) else passes.plan_passes(
         passes.film_lanes(scene.sensors()[0].film()), spp)
+    before = load.snapshot()
     start = time.perf_counter()
     image = passes.render_in_passes(
         plan, seed, lambda s, n: mi.render(scene, integrator=integrator, spp=n, seed=s))
     dr.sync_thread()
     seconds = time.perf_counter() - start
+    others = load.others_seconds(before, load.snapshot())
     image, aovs = split_aovs(np.array(image, dtype=np.float32), integrator.aov_names(), spp)
     return Render(image, seconds, spp, seed, {"passes": len(plan)} if len(plan) > 1 else {},
-                  aovs)
+                  aovs, others)
 
 
 def provenance(scene_path: str, name: str, integrator, params: dict, defines: dict,

@@ -35,6 +35,8 @@ class Stack:
     images: np.ndarray                      # (K, H, W, C) float32
     seconds: list[float] = field(default_factory=list)
     aovs: dict = field(default_factory=dict)   # AOV group → (K, H, W, k) (renders.Render)
+    #: CPU seconds other processes used during each render (run/load.py).
+    others: list = field(default_factory=list)
 
 
 def rotation(names: list, i: int) -> list:
@@ -60,7 +62,8 @@ def interleaved(ctx, integrators: dict, spp: dict[str, int], k: int, seeds: list
         shots[n].append(out)
     return {n: Stack(n, spp[n], np.stack([o.image for o in shots[n]]),
                      [o.seconds for o in shots[n]],
-                     {g: np.stack([o.aovs[g] for o in shots[n]]) for g in shots[n][0].aovs})
+                     {g: np.stack([o.aovs[g] for o in shots[n]]) for g in shots[n][0].aovs},
+                     [o.others_seconds for o in shots[n]])
             for n in names}
 
 
@@ -126,6 +129,7 @@ def kept(ctx, file: str, tag: str, integrators: dict, spp: dict[str, int], k: in
         for n, s in compiled.items():
             ctx.compile_seconds.setdefault(n, s)
         ctx.run.step(f"{label} {file}: kept", k * len(integrators))
+        ctx.run.kept += k * len(integrators)
         return stacks
     if compile_ is not None:
         compile_(ctx)

@@ -41,13 +41,15 @@ def warm(executor, job, spp: dict[str, int], seed: int) -> dict[str, float]:
 
 
 def timed(executor, job, plan: dict[str, list[int]], rounds: int,
-          stream) -> dict[str, dict[int, list[float]]]:
+          stream, spans: list | None = None) -> dict[str, dict[int, list[float]]]:
     """{name: {spp: [seconds]}}: after an untimed render at every spp of the
     plan (largest first), ``rounds`` rounds, the integrators rotated every
     round, each rendering at every spp of ``plan[name]`` (round i with seed i
     of ``stream``); one timed batch of the executor. Without the warm-up at
     each spp, a cold kernel cache makes one timed render several times the
-    others' and inflates the fitted fixed cost (docs/measurements.md)."""
+    others' and inflates the fitted fixed cost (docs/measurements.md).
+    ``spans``, if given, receives (seconds, CPU seconds of other processes)
+    of every timed render (run/load.py)."""
     batch, slots = [], []
     for j in range(max(len(s) for s in plan.values())):
         for n, spps in plan.items():
@@ -64,6 +66,8 @@ def timed(executor, job, plan: dict[str, list[int]], rounds: int,
     for slot, result in zip(slots, executor.render(batch, timed=True)):
         if slot is not None:
             out[slot[0]][slot[1]].append(result.seconds)
+            if spans is not None:
+                spans.append((result.seconds, result.others_seconds))
     return out
 
 

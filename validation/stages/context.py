@@ -32,6 +32,10 @@ class Run:
     #: ``--budget``: a sequential test's budget, × its first look's samples
     #: per pixel, for every check (None: the profile's ``[sequential]``).
     budget: float | None = None
+    #: Renders done by this process and renders loaded from the run
+    #: directory (stacks.kept): a run that rendered none is a re-run.
+    rendered: int = 0
+    kept: int = 0
 
     @property
     def sequential(self):
@@ -90,6 +94,8 @@ class Context:
     budget_path_spp: list = None    # speed.time_costs: path's spp at each budget
     budgets: list = field(default_factory=list)       # speed.render_budgets: (T, path spp)
     budget_stacks: list = field(default_factory=list)  # speed.render_budgets: name → Stack each
+    budget_tries: list = field(default_factory=list)   # speed.render_budgets: name → [Try] each
+    timing_load: list = field(default_factory=list)    # speed.time_costs: (seconds, others)
     flip_maps: dict = field(default_factory=dict)     # speed.measure_speed: name → (H, W)
     timed_on: list = field(default_factory=list)      # speed.render_budgets: nodes that timed
     notes: list = field(default_factory=list)         # speed.*: what did not hold
@@ -132,6 +138,7 @@ class Context:
         finished one is a step of the progress bar (none if ``label`` is None)."""
         def step(job):
             self.run.step(f"{label} {job.integrator.name} {job.spp} spp")
+        self.run.rendered += len(batch)
         return self.run.executor.render(batch, step if label is not None else None, timed)
 
     def derive(self, estimators=None, *, label: str = "", streams: dict | None = None,

@@ -13,18 +13,25 @@ in a sub-context of the scene's (``ctx.display``). Its stages, in order:
     render_budgets     budgets T = `path`'s model at ``path_spp`` (scaled by one
                        factor until every a ≤ 10 % of the smallest T);
                        K renders per estimator and budget at
-                       spp = max(1, round((T − a)/b)), interleaved, each timed
+                       spp = max(1, round((T − a)/b)), interleaved, each timed;
+                       an estimator whose median missed T by more than 10 %
+                       renders its K again at the spp its measured times say
+                       (secant), at most twice; every try is kept
     display_reference  `path` until its standard error is at most the profile's
                        ``display_reference_fraction`` (25 %) of `path`'s own RMSE
                        at the largest budget (run/references.py: adaptive,
                        cached by content): about 16× `path`'s spp there. Its
                        share of every relMSE is recorded (``reference_relmse``:
-                       6 % of path's); an estimator whose relMSE is within 2×
-                       of it is flagged in the notes (its efficiency is a lower
-                       bound: in the furnace the cosine estimator is exact)
+                       6 % of path's, with its standard error)
     measure_speed      relMSE with its interval per budget, wall times against
-                       the budget, efficiency against `path`, a ranking with
-                       ties, FLIP
+                       the budget, efficiency against `path` net of the
+                       reference's share (stats/costs.py), a ranking with
+                       ties, FLIP; an estimator whose relMSE is within 2× of
+                       the share is flagged (its efficiency is a lower bound:
+                       in the furnace the cosine estimator is exact), one
+                       biased by design is marked so; the cores other
+                       processes used while the renders were timed
+                       (run/load.py), and a note above LOADED
     save_display       images/<scene>/display/: the reference; per estimator
                        its first render at the largest budget with its FLIP map
 
@@ -47,8 +54,8 @@ from mcillum import files
 from mcillum.integrators import registry
 
 from ..plan import seeds
-from ..results import Budget, BudgetRun, Ratio, Speed, layout
-from ..run import references, stacks, timing
+from ..results import Budget, BudgetRun, Ratio, Speed, Try, layout
+from ..run import load, references, stacks, timing
 from ..run.stacks import Stack
 from ..stats import costs, metrics
 from . import common
@@ -58,7 +65,11 @@ PILOT_SPP = (1, 16)
 PILOT_ROUNDS = 3
 MAX_SCALE = 64             # budgets grow at most this much to outweigh the fixed cost
 ON_BUDGET = 0.10           # a median wall time within ±10 % of its budget
-CACHE_VERSION = 1
+CORRECTIONS = 2            # re-renders of an estimator that missed a budget
+#: Other processes using more than this many cores on average during the
+#: timed renders: the machine was loaded, and the report says so.
+LOADED = 0.25
+CACHE_VERSION = 2
 
 
 # ----------------------------- The display scene --------------------------------
@@ -97,7 +108,8 @@ def time_costs(ctx) -> None:
     for n, model in pilot.items():
         lo = costs.spp_for(model, smallest / 4)
         plan[n] = [lo, max(costs.spp_for(model, smallest), 2 * lo)]
-    ctx.timings = timing.timed(sub.run.executor, _job(sub), plan, d.repeats, stream)
+    ctx.timings = timing.timed(sub.run.executor, _job(sub), plan, d.repeats, stream,
+                               ctx.timing_load)
     ctx.costs = {n: costs.fit_cost(t) for n, t in ctx.timings.items()}
     ctx.budget_path_spp = path_spp
 
@@ -117,7 +129,11 @@ def budget_spp(models: dict, path_spp) -> list[int]:
 # --------------------------------- Budgets ---------------------------------------
 
 def render_budgets(ctx) -> None:
-    """K timed renders per estimator at every budget (or the cached ones)."""
+    """K timed renders per estimator at every budget (or the cached ones):
+    at the spp the cost model predicts, then, for an estimator whose median
+    missed the budget by more than ON_BUDGET, again at the spp the measured
+    times say (:func:`corrected`), at most CORRECTIONS times; the try whose
+    median came nearest the budget is the one measured."""
     sub, d = ctx.display, ctx.plan.display
     path = ctx.costs[REFERENCE]
     ctx.budgets = [(costs.seconds_at(path, s), s) for s in ctx.budget_path_spp]
@@ -127,15 +143,59 @@ def render_budgets(ctx) -> None:
     spps = [{n: path_spp if n == REFERENCE else costs.spp_for(m, budget)
              for n, m in ctx.costs.items()} for budget, path_spp in ctx.budgets]
     # (untimed: the first render at a larger wavefront allocates memory, timing.py)
-    timing.warm(sub.run.executor, _job(sub),
-                {n: max(s[n] for s in spps) for n in spps[0]},
-                seeds.stream("speed_timing").seed(0))
+    warmed = {n: max(s[n] for s in spps) for n in spps[0]}
+    timing.warm(sub.run.executor, _job(sub), warmed, seeds.stream("speed_timing").seed(0))
     for j, ((budget, _), spp) in enumerate(zip(ctx.budgets, spps)):
-        ctx.budget_stacks.append(stacks.interleaved(
-            sub, sub.integrators, spp, d.renders, seeds.stream("speed", j).take(d.renders),
-            f"{sub.label} {budget * 1e3:.0f} ms", timed=True))
+        stacks_j, tries = {}, {n: [] for n in spp}
+        todo = dict(spp)
+        for attempt in range(1 + CORRECTIONS):
+            got = stacks.interleaved(
+                sub, {n: sub.integrators[n] for n in todo}, todo, d.renders,
+                seeds.stream("speed", j).take(d.renders),
+                f"{sub.label} {budget * 1e3:.0f} ms" + (f" (again: {len(todo)})"
+                                                        if attempt else ""), timed=True)
+            for n, u in got.items():
+                tries[n].append(Try(spp=u.spp, wall_seconds=[float(x) for x in u.seconds],
+                                    others_cores=load.cores(u.others, u.seconds)))
+                if _closest(tries[n], budget) == len(tries[n]) - 1:
+                    stacks_j[n] = u         # (a correction that did worse is not kept)
+            todo = {n: nxt for n in got
+                    if (nxt := corrected(ctx.costs[n], tries[n], budget)) is not None}
+            if not todo:
+                break
+            bigger = {n: s for n, s in todo.items() if s > warmed[n]}
+            if bigger:
+                timing.warm(sub.run.executor, _job(sub), bigger,
+                            seeds.stream("speed_timing").seed(0))
+                warmed.update(bigger)
+        ctx.budget_stacks.append({n: stacks_j[n] for n in spp})
+        ctx.budget_tries.append(tries)
     ctx.timed_on = sub.run.executor.timed_on()
     _save_cache(ctx)
+
+
+def corrected(model, tries: list[Try], budget: float) -> int | None:
+    """The spp of the next try of an estimator whose last try's median wall
+    time missed ``budget`` by more than ON_BUDGET; None where it did not, or
+    where no other spp would do better (1 spp is already too slow). The
+    secant through the model's fixed cost (spp 0, a) and the last median,
+    its step at most ×2 either way: a secant through two tries' medians
+    chased the load of a shared machine (a try 30 % slower than the one
+    before sent an estimator from 34 spp to 1)."""
+    last = tries[-1]
+    median = float(np.median(last.wall_seconds))
+    if abs(median - budget) <= ON_BUDGET * budget:
+        return None
+    fixed = min(max(model.fixed_s, 0.0), 0.5 * median)
+    scale = (budget - fixed) / (median - fixed)
+    spp = max(1, int(round(last.spp * min(max(scale, 0.5), 2.0))))
+    return None if spp == last.spp else spp
+
+
+def _closest(tries: list[Try], budget: float) -> int:
+    """The index of the try whose median is nearest ``budget``."""
+    return min(range(len(tries)),
+               key=lambda i: abs(float(np.median(tries[i].wall_seconds)) - budget))
 
 
 def _job(sub):
@@ -171,36 +231,68 @@ def measure_speed(ctx) -> None:
     sub, d = ctx.display, ctx.plan.display
     ref = sub.reference
     r = ref.mean[..., :3]
-    ref_share = metrics.reference_relmse(r, ref.variance_of_mean)
+    share = costs.reference_share(r, ref.variance_of_mean, ref.passes)
     budgets = []
-    for (budget, path_spp), by_name in zip(ctx.budgets, ctx.budget_stacks):
-        runs = {n: _budget_run(ctx, n, u, budget, r) for n, u in by_name.items()}
+    for j, ((budget, path_spp), by_name) in enumerate(zip(ctx.budgets, ctx.budget_stacks)):
+        tries = ctx.budget_tries[j] if j < len(ctx.budget_tries) else {}
+        runs = {n: _budget_run(ctx, n, u, budget, r, tries.get(n, [])) for n, u in by_name.items()}
         budgets.append(Budget(seconds=budget, path_spp=path_spp, estimators=runs,
-                              reference_relmse=ref_share))
+                              reference_relmse=share.value, reference_relmse_se=share.se))
     top = budgets[-1].estimators
-    for n, run in top.items():
-        if run.relmse < 2 * ref_share:
-            ctx.notes.append(f"{n}: its relMSE {run.relmse:.3g} is within 2× of the "
-                             f"reference's own share {ref_share:.3g}: the reference limits "
-                             "it, and its efficiency is a lower bound")
     base = top[REFERENCE]
-    ratios = {n: costs.ratio_interval(run.relmse_per_render, run.wall_seconds,
-                                      base.relmse_per_render, base.wall_seconds)
-              for n, run in top.items()}
+    ratios = {}
+    for n, run in top.items():
+        ratio, ci = costs.ratio_interval(run.relmse_per_render, run.wall_seconds,
+                                         base.relmse_per_render, base.wall_seconds, share)
+        ratios[n] = Ratio(ratio=ratio, ci=ci, kind=_kind(n, run, share))
+        if ratios[n].kind == "reference_limited":
+            ctx.notes.append(f"{n}: its relMSE {run.relmse:.3g} is within 2× of the "
+                             f"reference's own share {share.value:.3g}: the reference "
+                             "limits it, and its efficiency is a lower bound")
     ranking = costs.ranking({n: costs.efficiency_interval(run.relmse_per_render,
-                                                          run.wall_seconds)
+                                                          run.wall_seconds, share)
                              for n, run in top.items()})
+    others, cores, loaded = _load(ctx)
     flips = {n: metrics.flip(u.images[0], r) for n, u in ctx.budget_stacks[-1].items()}
     ctx.flip_maps = {n: f[0] for n, f in flips.items() if f is not None}
     ctx.speed = Speed(
         res=d.res, renders=d.renders, cost_model=dict(ctx.costs), budgets=budgets,
-        efficiency_vs_path={n: Ratio(ratio=r, ci=ci) for n, (r, ci) in ratios.items()},
-        ranking=ranking, reference=common.reference_summary(ref),
+        efficiency_vs_path=ratios, ranking=ranking, reference=common.reference_summary(ref),
         mean_flip={n: (f[1] if f is not None else float("nan")) for n, f in flips.items()},
-        notes=list(ctx.notes), timed_on=list(ctx.timed_on))
+        notes=list(ctx.notes), timed_on=list(ctx.timed_on), others_cores=others,
+        cores=cores, loaded=loaded)
 
 
-def _budget_run(ctx, name: str, stack: Stack, budget: float, r: np.ndarray) -> BudgetRun:
+def _kind(name: str, run: BudgetRun, share: costs.Share) -> str:
+    """What the estimator's efficiency figure means (results.KINDS)."""
+    if not registry.facts(name).unbiased:
+        return "biased"
+    return "reference_limited" if run.relmse < 2 * share.value else "unbiased"
+
+
+def _load(ctx) -> tuple[float | None, int, bool]:
+    """(cores other processes used on average during the timed renders,
+    this machine's cores, whether that is above LOADED); notes it when so."""
+    seconds = [t for t, _ in ctx.timing_load]
+    others = [o for _, o in ctx.timing_load]
+    for tries in ctx.budget_tries:
+        for ts in tries.values():
+            for t in ts:
+                seconds.append(float(np.sum(t.wall_seconds)))
+                others.append(None if t.others_cores is None
+                              else t.others_cores * float(np.sum(t.wall_seconds)))
+    used, cores = load.cores(others, seconds), os.cpu_count() or 1
+    loaded = used is not None and used > LOADED
+    if loaded:
+        ctx.notes.append(
+            f"the machine was loaded: other processes used {used:.2f} of its {cores} cores "
+            "on average while these renders were timed; the times, and the efficiency "
+            "figures, are those of a loaded machine (run again on a quiet one to compare)")
+    return used, cores, loaded
+
+
+def _budget_run(ctx, name: str, stack: Stack, budget: float, r: np.ndarray,
+                tries: list[Try]) -> BudgetRun:
     per = metrics.per_render_relmse(stack.images, r).tolist()
     mean, ci = costs.relmse_interval(per)
     median = float(np.median(stack.seconds))
@@ -208,17 +300,18 @@ def _budget_run(ctx, name: str, stack: Stack, budget: float, r: np.ndarray) -> B
     note = None
     if not on:
         one = costs.seconds_at(ctx.costs[name], 1)
+        again = f" after {len(tries) - 1} corrections" if len(tries) > 1 else ""
         if stack.spp == 1 and one > budget:
             note = (f"1 spp already takes {one * 1e3:.1f} ms (cost model), more than the "
                     f"{budget * 1e3:.1f} ms budget")
         else:
             note = (f"median {median * 1e3:.1f} ms at {stack.spp} spp against a "
-                    f"{budget * 1e3:.1f} ms budget ({100 * (median / budget - 1):+.0f} %): "
-                    "the machine's speed drifted between the timing and these renders, "
-                    "or t = a + b·spp does not hold at this spp")
+                    f"{budget * 1e3:.1f} ms budget ({100 * (median / budget - 1):+.0f} %)"
+                    f"{again}: its times varied more than the spp could follow")
         ctx.notes.append(f"{name} at {budget * 1e3:.1f} ms: {note}")
     return BudgetRun(spp=stack.spp, wall_seconds=[float(s) for s in stack.seconds], relmse=mean,
-                     relmse_ci=ci, relmse_per_render=per, on_budget=on, note=note)
+                     relmse_ci=ci, relmse_per_render=per, on_budget=on, note=note,
+                     tries=list(tries))
 
 
 # --------------------------------- Images ----------------------------------------
@@ -271,9 +364,13 @@ def _load_cache(ctx) -> None:
     ctx.timings = {n: {int(s): t for s, t in v.items()} for n, v in meta["timings"].items()}
     ctx.budget_path_spp = [int(x) for x in meta["path_spp"]]
     ctx.budget_stacks = found
+    ctx.budget_tries = [{n: [Try(**t) for t in ts] for n, ts in tries.items()}
+                        for tries in meta["tries"]]
+    ctx.timing_load = [tuple(x) for x in meta["timing_load"]]
     ctx.timed_on = list(meta.get("timed_on", []))
-    ctx.run.step(f"{ctx.id} speed stage: loaded",
-                 len(found) * ctx.plan.display.renders * len(ctx.display.integrators))
+    loaded = len(found) * ctx.plan.display.renders * len(ctx.display.integrators)
+    ctx.run.step(f"{ctx.id} speed stage: loaded", loaded)
+    ctx.run.kept += loaded
 
 
 def _save_cache(ctx) -> None:
@@ -282,6 +379,9 @@ def _save_cache(ctx) -> None:
         "timings": {n: {str(s): t for s, t in v.items()} for n, v in ctx.timings.items()},
         "path_spp": ctx.budget_path_spp,
         "timed_on": ctx.timed_on,
+        "tries": [{n: [dataclasses.asdict(t) for t in ts] for n, ts in tries.items()}
+                  for tries in ctx.budget_tries],
+        "timing_load": [list(x) for x in ctx.timing_load],
         "spp": [[[n, u.spp] for n, u in by_name.items()] for by_name in ctx.budget_stacks]})}
     for j, by_name in enumerate(ctx.budget_stacks):
         for i, u in enumerate(by_name.values()):

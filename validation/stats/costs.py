@@ -22,10 +22,14 @@ The numbers of the speed-and-images stage (stages/speed.py) and of
 
 from __future__ import annotations
 
+import typing
+from dataclasses import dataclass
+
 import numpy as np
 from scipy import stats
 
 from ..results import CostModel, Interval, Placement
+from . import metrics
 from .statistics import mean_interval
 
 BOOTSTRAP = 2000
@@ -121,26 +125,78 @@ def _log_se(values) -> float:
     return float(v.std(ddof=1) / (m * np.sqrt(len(v))))
 
 
-def efficiency(relmse, seconds) -> tuple[float, float]:
-    """(1/(mean relMSE · mean seconds), standard error of its logarithm)
-    from per-render relMSE and wall times."""
-    r, t = float(np.mean(relmse)), float(np.mean(seconds))
-    eff = 1.0 / (r * t) if r > 0 and t > 0 else float("inf")
-    return eff, float(np.hypot(_log_se(relmse), _log_se(seconds)))
+class Share(typing.NamedTuple):
+    """What a reference's own noise adds to every relMSE measured against it
+    (metrics.reference_relmse), and the standard error of that figure."""
+
+    value: float = 0.0
+    se: float = 0.0
 
 
-def efficiency_interval(relmse, seconds) -> tuple[float, Interval]:
-    eff, se = efficiency(relmse, seconds)
-    half = _t(len(relmse)) * se
-    return eff, Interval(eff * np.exp(-half), eff * np.exp(half))
+def reference_share(r, variance_of_mean, passes: int) -> Share:
+    """The share of reference ``r`` (its per-pixel ``variance_of_mean`` from
+    ``passes`` passes). Its standard error treats the image's variance as
+    estimated from ``passes`` values, √(2/(passes − 1)) of it: what one
+    pixel's estimate would have, an upper bound where pixels are
+    independent, and honest where a few fireflies carry the variance."""
+    value = metrics.reference_relmse(r, variance_of_mean)
+    return Share(value, value * float(np.sqrt(2.0 / max(passes - 1, 1))))
 
 
-def ratio_interval(relmse, seconds, base_relmse, base_seconds) -> tuple[float, Interval]:
-    """Efficiency of one estimator over a base's (``path``) and its interval."""
-    e, se = efficiency(relmse, seconds)
-    e0, se0 = efficiency(base_relmse, base_seconds)
-    ratio = e / e0
-    half = _t(min(len(relmse), len(base_relmse))) * float(np.hypot(se, se0))
+@dataclass(frozen=True)
+class Efficiency:
+    """1/(net relMSE · mean seconds) with its 95 % interval; net = the mean
+    relMSE of the renders less the reference's share. ``resolved`` is False
+    where the net relMSE is not above 0 at 95 %: the error is the
+    reference's noise, and only the lower end of the interval means
+    anything (its upper end is +inf)."""
+
+    value: float
+    log_se: float
+    ci: Interval
+    resolved: bool
+
+
+def efficiency(relmse, seconds, share: Share = Share()) -> Efficiency:
+    """The efficiency of K renders (per-render relMSE and wall times),
+    against the truth rather than against the reference's noise: delta
+    method on logarithms, Student-t with K − 1 degrees of freedom."""
+    v, t = np.asarray(relmse, float), np.asarray(seconds, float)
+    q = _t(len(v))
+    net = float(v.mean()) - share.value
+    se = float(np.hypot(v.std(ddof=1) / np.sqrt(len(v)) if len(v) > 1 else np.inf, share.se))
+    mean_t, t_se = float(t.mean()), _log_se(t)
+    if net > q * se and mean_t > 0:
+        log_se = float(np.hypot(se / net, t_se))
+        value = 1.0 / (net * mean_t)
+        return Efficiency(value, log_se, Interval(value * np.exp(-q * log_se),
+                                                  value * np.exp(q * log_se)), True)
+    # (only a lower bound: the net error may be 0)
+    low = 1.0 / ((max(net, 0.0) + q * se) * mean_t * np.exp(q * t_se)) \
+        if np.isfinite(se) and mean_t > 0 else 0.0
+    value = 1.0 / (net * mean_t) if net > 0 and mean_t > 0 else float("inf")
+    return Efficiency(value, float("inf"), Interval(float(low), float("inf")), False)
+
+
+def efficiency_interval(relmse, seconds, share: Share = Share()) -> tuple[float, Interval]:
+    e = efficiency(relmse, seconds, share)
+    return e.value, e.ci
+
+
+def ratio_interval(relmse, seconds, base_relmse, base_seconds,
+                   share: Share = Share()) -> tuple[float, Interval]:
+    """Efficiency of one estimator over a base's (``path``) and its interval,
+    both net of the reference's ``share``. Where the estimator's error is
+    not resolved from the reference's noise the interval is a lower bound
+    (its upper end +inf)."""
+    e, e0 = efficiency(relmse, seconds, share), efficiency(base_relmse, base_seconds, share)
+    q = _t(min(len(relmse), len(base_relmse)))
+    if not e0.resolved:
+        return float("nan"), Interval(0.0, float("inf"))
+    ratio = e.value / e0.value
+    if not e.resolved:
+        return ratio, Interval(e.ci.low / e0.value * np.exp(-q * e0.log_se), float("inf"))
+    half = q * float(np.hypot(e.log_se, e0.log_se))
     return ratio, Interval(ratio * np.exp(-half), ratio * np.exp(half))
 
 
