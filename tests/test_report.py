@@ -11,12 +11,14 @@ import os
 import re
 import shutil
 
+import matplotlib
 import numpy as np
 import pytest
+from PIL import Image
 
 from mcillum import files
 from mcillum.validation import report, results
-from mcillum.validation.report import charts
+from mcillum.validation.report import charts, parts
 from mcillum.validation.report import scenes as scene_section
 from mcillum.validation.report.parts import worst_window
 from mcillum.validation.results import (Budget, BudgetRun, Check, Convergence, EstimatorInfo,
@@ -243,24 +245,32 @@ def fake_run_dir(tmp_path, res=None):
 
 
 def data_images(html_text):
-    return re.findall(r'<img src="data:image/png;base64,([^"]+)"', html_text)
+    """Every <img> of the page: (format of its data URI, width and height shown,
+    the image as Pillow decodes it)."""
+    from PIL import Image
+
+    found = re.findall(r'<img src="data:image/(\w+);base64,([^"]+)" alt="[^"]*" '
+                       r'width="(\d+)" height="(\d+)"', html_text)
+    return [(fmt, int(w), int(h), Image.open(io.BytesIO(base64.b64decode(b64))))
+            for fmt, b64, w, h in found]
 
 
 def test_report_is_self_contained(tmp_path):
-    import matplotlib.image
-
     page = report.build(str(fake_run_dir(tmp_path)))
     text = open(page, encoding="utf-8").read()
     assert "cosine hemisphere" in text                      # the estimator table
     assert "default-src 'none'" in text                     # the page may fetch nothing
     assert not re.search(r'(src|href)="(?!data:|#)', text)  # no external resources
     assert "<script" not in text
-    pngs = data_images(text)
+    shown = data_images(text)
     # per scene: reference and 3 estimators, 3 error maps, 3 FLIP maps, 4 crops
-    assert len(pngs) == 2 * (1 + 3 + 3 + 3 + 4)
+    assert len(shown) == text.count("<img ") == 2 * (1 + 3 + 3 + 3 + 4)
     assert "$" not in re.sub(r"<(svg|style).*?</\1>", "", text, flags=re.S)
-    for b64 in pngs:
-        assert matplotlib.image.imread(io.BytesIO(base64.b64decode(b64)), format="png").size
+    for fmt, width, height, image in shown:
+        assert fmt in ("png", "webp", "avif") and image.format.lower() == fmt
+        image.load()                                        # decodable
+        zoom = width // image.width                         # whole screen pixels per pixel
+        assert zoom >= 1 and (width, height) == (zoom * image.width, zoom * image.height)
     # 2 scenes × 3: uniform fails in both, cosine is inconclusive in one
     assert "3 of 6 checks pass, 1 inconclusive, 2 fail" in text
     unsure = text.split("Inconclusive at this budget", 1)[1]
@@ -291,6 +301,71 @@ def test_worst_window_finds_the_hot_spot():
     err[10:13, 2:5] = 1.0
     y, x, size = worst_window([err, err * 0.5])
     assert size == 4 and y <= 10 < y + size and x <= 2 < x + size
+
+
+# --------------------------- Images and charts, compact ---------------------------
+
+def test_maps_are_exactly_the_colours_of_their_colour_bar():
+    """An error or FLIP map decodes to exactly the colours matplotlib picks for
+    its values on the stepped scale its colour bar shows."""
+    levels = parts.ERROR_LEVELS
+    middles = (np.arange(64 * 64) % levels + 0.5) / levels          # every step, mid-step
+    err = 1e-3 * 10 ** (3 * middles.reshape(64, 64))
+    norm = matplotlib.colors.LogNorm(vmin=1e-3, vmax=1.0)
+    wanted = parts.map_colours(levels)(norm(err), bytes=True)[..., :3]
+    assert (parts.decoded(parts.error_map(err, 1e-3, 1.0)) == wanted).all()
+    flip = np.random.default_rng(0).uniform(0, 1, (64, 64))
+    wanted = parts.map_colours(parts.FLIP_LEVELS)(flip, bytes=True)[..., :3]
+    assert (parts.decoded(parts.flip_map(flip)) == wanted).all()
+
+
+def noisy_ramp(sigma: float, rng) -> np.ndarray:
+    """A 128² 8-bit grey ramp with Gaussian noise of ``sigma`` levels."""
+    ramp = np.linspace(40, 200, 128)[None, :, None] * np.ones((128, 1, 3))
+    return np.clip(np.round(ramp + rng.normal(0, sigma, ramp.shape)), 0, 255).astype(np.uint8)
+
+
+@pytest.mark.skipif(not parts._AVIF, reason="this Pillow has no AVIF encoder with libaom")
+def test_renders_are_lossy_only_where_their_noise_stays():
+    """A render is AVIF where that keeps its pixel-scale detail (its noise)
+    within DETAIL_TOLERANCE and is smaller than exact: noise of 12 levels in a
+    third of the bytes; noise of 1 level, which AVIF would smooth away, exact.
+    The broken twin, AVIF at the default tuning, loses a third of the detail."""
+    rng = np.random.default_rng(3)
+    exact = lambda a: parts._picture(Image.fromarray(a), parts._LOSSLESS)  # noqa: E731
+    faint, noisy = noisy_ramp(1.0, rng), noisy_ramp(12.0, rng)
+    shown = parts.render(noisy)
+    assert shown.uri.startswith("data:image/avif;") and len(shown.uri) < len(exact(noisy).uri) / 3
+    kept = parts.detail(parts.decoded(shown)) / parts.detail(noisy)
+    assert abs(kept - 1) <= parts.DETAIL_TOLERANCE
+    assert (parts.decoded(parts.render(faint)) == faint).all()
+    twin = parts._picture(Image.fromarray(noisy), [{"format": "avif", "quality": 60,
+                                                   "subsampling": "4:4:4"}])
+    assert parts.detail(parts.decoded(twin)) / parts.detail(noisy) < 0.67
+
+
+def chart_svgs() -> list[str]:
+    scene = synthetic_results().scenes[0]
+    return [charts.error_vs_time(scene, COLOURS), charts.error_vs_spp(scene, COLOURS),
+            charts.error_spread(scene, COLOURS),
+            charts.efficiency_summary(synthetic_results(), COLOURS),
+            charts.colour_bar(1e-3, 1.0, parts.map_colours(parts.ERROR_LEVELS), "relative error")]
+
+
+def test_charts_are_compact_well_formed_svg():
+    """Every chart parses as XML; its text is text (not a path per glyph), in
+    a font list that ends in a generic family; every class it uses has its rule;
+    no comments, line breaks or plain groups are left."""
+    import xml.etree.ElementTree as ET
+
+    for svg in chart_svgs():
+        ET.fromstring(svg)
+        assert "<text" in svg and "DejaVuSans-" not in svg
+        fonts = re.findall(r"font-family: ([^;}\"]+)", svg)
+        assert fonts and all(f.endswith("sans-serif") for f in fonts), fonts
+        rules = set(re.findall(r"\.(c[0-9a-f]{8})\{", svg))
+        assert set(re.findall(r'class="([^"]+)"', svg)) <= rules
+        assert "<!--" not in svg and "\n" not in svg and "<g>" not in svg
 
 
 # ------------------------------ In a real browser ------------------------------

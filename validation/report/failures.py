@@ -15,7 +15,7 @@ from ..checks import evidence
 from ..results import CaseResult, Results, layout
 from ..stats import tails
 from . import charts
-from .parts import fmt, img, swatch
+from .parts import fmt, img, render, swatch
 
 
 def failures_section(res: Results, run_dir: str, colours: dict) -> str:
@@ -78,12 +78,12 @@ def _failure_case(case: CaseResult, run_dir: str, colours: dict) -> str:
     ref_file = os.path.join(case_dir, "reference.exr")
     ref = files.read_exr(ref_file)[0] if os.path.isfile(ref_file) else None
     ev = images.exposure_for(ref) if ref is not None else 0.0
-    figs = [] if ref is None else [img(images.tonemap(ref, ev), "reference (path)", 96)]
+    figs = [] if ref is None else [img(render(images.tonemap(ref, ev)), "reference (path)", 96)]
     rows = []
     for est in case.estimators:
         for label, f in est.images.items():
             x = files.read_exr(os.path.join(case_dir, f))[0]
-            figs.append(img(images.tonemap(x, ev), f"{est.name}<br>{label} seed", 96))
+            figs.append(img(render(images.tonemap(x, ev)), f"{est.name}<br>{label} seed", 96))
         rows.append(_failure_row(case, est, colours))
     if case.sweep is not None:
         sw = case.sweep

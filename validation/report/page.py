@@ -2,14 +2,16 @@
 
 Reads the run's :class:`~mcillum.validation.results.Results`
 (``DIR/results.json``) and the EXR images beside it, renders nothing, and
-writes ``DIR/report/index.html`` (images as PNG data URIs, charts as inline
-SVG, inline CSS, no script, a Content-Security-Policy that forbids every
-external request).
+writes ``DIR/report/index.html`` (images as data URIs: renders as AVIF where
+that keeps their noise, else and maps as lossless WebP or PNG, see :mod:`.parts`;
+charts as inline SVG, inline CSS, no script, a Content-Security-Policy that
+forbids every external request).
 
 Tone mapping, the same for every image of a scene: x · 2^EV, clipped to
 [0, 1], sRGB curve; EV puts the reference's 99th-percentile channel value at 1.
 Error maps: :func:`metrics.relative_error_map`, |x − r| / (|r| + 0.01) per
-pixel (channel mean), on one shared logarithmic colour scale per scene.
+pixel (channel mean), on one shared logarithmic colour scale per scene, in
+16 steps; FLIP maps on FLIP's linear scale in 48 (:mod:`.parts`).
 """
 
 from __future__ import annotations
@@ -61,6 +63,7 @@ table{border-collapse:collapse;margin:10px 0;font-size:13px} td,th{border:1px so
 .verdict{font-size:18px;padding:8px 12px;display:inline-block;border-radius:4px}
 .pass{background:#e6f4ea} .fail{background:#fdecea} .inconclusive{background:#fff4e0} .desc{color:#555} svg{max-width:100%;height:auto}
 .bar svg{width:420px}
+.loaded{background:#fff4e0;padding:6px 10px;border-radius:4px}
 """
 
 
@@ -94,7 +97,7 @@ def _write(run_dir: str, res: Results) -> str:
 <p>{html.escape(res.created)} · {html.escape(m['platform'])}, {m['cpus']} CPUs ·
 variant <code>{html.escape(res.variant)}</code> · mitsuba {html.escape(res.mitsuba_version)},
 drjit {html.escape(res.drjit_version)} · profile <b>{html.escape(res.profile)}</b> ·
-{_executor(res.executor)} · {res.wall_seconds:.0f} s · report written {time.strftime('%Y-%m-%d %H:%M')}</p>
+{_executor(res.executor)} · {html.escape(results.wall_text(res))} · report written {time.strftime('%Y-%m-%d %H:%M')}</p>
 <p class="verdict {verdict[0]}">{verdict[1]}</p>
 <p>Scenes: {toc} · <a href="#failures">where methods fail</a> · <a href="#summary">summary</a></p>
 <p>Each estimator renders every scene K times per spp; Mitsuba's <code>path</code> at the same

@@ -1,5 +1,6 @@
-"""The pieces of the report's HTML: images as PNG data URIs, error and FLIP
-maps on one colour scale, the worst region, numbers, swatches, outcomes."""
+"""The pieces of the report's HTML: images as data URIs (renders as AVIF where
+that keeps their noise, error and FLIP maps exact on a stepped colour scale),
+the worst region, numbers, swatches, outcomes."""
 
 from __future__ import annotations
 
@@ -7,36 +8,122 @@ import base64
 import html
 import io
 import re
+from dataclasses import dataclass
 
 import matplotlib
-import matplotlib.image
 import numpy as np
+from PIL import Image
 
 ERROR_CMAP = "magma"
-MIN_SIDE = 160          # small renders are enlarged (nearest) to at least this
+# Steps of a map's colour scale: its pixels are exactly these colours, and its
+# colour bar shows them. A relative-error map is noise from pixel to pixel,
+# which hides the steps: 16 (5 a decade) look as 256 do, in 0.4× the bytes.
+# A FLIP map is smooth: 48 keep its faint features (FLIP below 0.03).
+ERROR_LEVELS = 16
+FLIP_LEVELS = 48
+# A tone-mapped render as AVIF: 4:4:4 (one bright pixel keeps its colour),
+# tuned for SSIM (the default tuning smooths noise away: 3–8 % of its RMS on
+# 256² renders at quality 80), at the lowest of these qualities that keeps the
+# render's pixel-scale detail (its noise) within DETAIL_TOLERANCE; faint noise
+# (a few 8-bit levels) needs 90 or 95. Else, or where smaller, exact.
+RENDER_AVIF = {"format": "avif", "subsampling": "4:4:4", "speed": 6, "codec": "aom",
+               "advanced": {"tune": "ssim"}}
+RENDER_QUALITIES = (60, 70, 80, 90, 95)
+DETAIL_TOLERANCE = 0.05
+MIN_SIDE = 160          # small images are shown (pixelated) at least this wide
 
 
-def png_uri(rgb8: np.ndarray) -> str:
+@dataclass(frozen=True)
+class Picture:
+    """An encoded image: its data URI and its size in pixels."""
+    uri: str
+    height: int
+    width: int
+
+
+def _encoded(image: Image.Image, **options) -> bytes:
     buf = io.BytesIO()
-    matplotlib.image.imsave(buf, rgb8, format="png")
-    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode()
+    image.save(buf, **options)
+    return buf.getvalue()
 
 
-def enlarge(a: np.ndarray, side: int = MIN_SIDE) -> np.ndarray:
-    k = max(1, int(np.ceil(side / max(a.shape[:2]))))
-    return np.repeat(np.repeat(a, k, axis=0), k, axis=1)
+def _picture(image: Image.Image, candidates: list[dict]) -> Picture:
+    """The smallest of ``candidates`` (Pillow save options) as a Picture."""
+    data, fmt = min(((_encoded(image, **c), c["format"]) for c in candidates),
+                    key=lambda e: len(e[0]))
+    return Picture(f"data:image/{fmt};base64,{base64.b64encode(data).decode()}",
+                   image.height, image.width)
 
 
-def error_rgb(err: np.ndarray, vmin: float, vmax: float) -> np.ndarray:
+def _usable(options: dict) -> bool:
+    """Whether this Pillow encodes with ``options`` (WebP and AVIF are
+    optional in Pillow; AVIF's codec options need libaom)."""
+    try:
+        _encoded(Image.new("RGB", (8, 8)), **options)
+        return True
+    except (KeyError, OSError, ValueError):   # no such format, codec or option
+        return False
+
+
+_LOSSLESS = [o for o in ({"format": "png", "optimize": True},
+                         {"format": "webp", "lossless": True}) if _usable(o)]
+_AVIF = _usable(dict(RENDER_AVIF, quality=RENDER_QUALITIES[0]))
+
+
+def detail(rgb8: np.ndarray) -> float:
+    """RMS of the image's Laplacian: its pixel-scale detail, noise included."""
+    a = np.asarray(rgb8, np.float64)
+    lap = 4 * a[1:-1, 1:-1] - a[:-2, 1:-1] - a[2:, 1:-1] - a[1:-1, :-2] - a[1:-1, 2:]
+    return float(np.sqrt(np.mean(lap ** 2))) if lap.size else 0.0
+
+
+def render(rgb8: np.ndarray) -> Picture:
+    """A tone-mapped 8-bit RGB image: AVIF at the lowest quality of
+    RENDER_QUALITIES that keeps its :func:`detail`, or exact (PNG or lossless
+    WebP) where that is smaller or no quality keeps it."""
+    rgb8 = np.ascontiguousarray(rgb8[..., :3])
+    image = Image.fromarray(rgb8, "RGB")
+    exact = _picture(image, _LOSSLESS)
+    wanted = detail(rgb8)
+    for quality in RENDER_QUALITIES if _AVIF else ():
+        lossy = _picture(image, [dict(RENDER_AVIF, quality=quality)])
+        if len(lossy.uri) >= len(exact.uri):
+            break
+        if abs(detail(decoded(lossy)) - wanted) <= DETAIL_TOLERANCE * wanted:
+            return lossy
+    return exact
+
+
+def decoded(picture: Picture) -> np.ndarray:
+    """The RGB pixels of ``picture`` (8-bit), as a browser would show them."""
+    data = base64.b64decode(picture.uri.split(",", 1)[1])
+    return np.asarray(Image.open(io.BytesIO(data)).convert("RGB"))
+
+
+def map_colours(levels: int) -> matplotlib.colors.Colormap:
+    """The colour scale of a map in ``levels`` steps (ERROR_LEVELS, FLIP_LEVELS)."""
+    return matplotlib.colormaps[ERROR_CMAP].resampled(levels)
+
+
+def _level_map(level: np.ndarray, levels: int) -> Picture:
+    """Values in [0, 1] (NaN as 0) on :func:`map_colours` as an exact palette
+    image (PNG or lossless WebP): each pixel the colour matplotlib would pick."""
+    level = np.nan_to_num(np.asarray(level, np.float64), nan=0.0)
+    index = np.clip((level * levels).astype(np.int64), 0, levels - 1)
+    image = Image.fromarray(index.astype(np.uint8), "P")
+    image.putpalette(map_colours(levels)(np.arange(levels), bytes=True)[:, :3].ravel())
+    return _picture(image, _LOSSLESS)
+
+
+def error_map(err: np.ndarray, vmin: float, vmax: float) -> Picture:
+    """A relative-error map on the logarithmic scale [vmin, vmax] (clipped)."""
     norm = matplotlib.colors.LogNorm(vmin=vmin, vmax=vmax, clip=True)
-    rgba = matplotlib.colormaps[ERROR_CMAP](norm(np.maximum(err, vmin)))
-    return (rgba[..., :3] * 255).astype(np.uint8)
+    return _level_map(np.ma.filled(norm(np.maximum(err, vmin)), 0.0), ERROR_LEVELS)
 
 
-def flip_rgb(flip: np.ndarray) -> np.ndarray:
-    """A FLIP map in [0, 1] on the linear magma scale (FLIP's own)."""
-    rgba = matplotlib.colormaps[ERROR_CMAP](np.clip(flip, 0.0, 1.0))
-    return (rgba[..., :3] * 255).astype(np.uint8)
+def flip_map(flip: np.ndarray) -> Picture:
+    """A FLIP map in [0, 1] on the linear scale (FLIP's own)."""
+    return _level_map(np.clip(flip, 0.0, 1.0), FLIP_LEVELS)
 
 
 def worst_window(errors: list[np.ndarray]) -> tuple[int, int, int]:
@@ -60,17 +147,13 @@ def swatch(name: str, colours: dict) -> str:
             f"{html.escape(name)}")
 
 
-def img(rgb8: np.ndarray, caption: str, side: int = MIN_SIDE) -> str:
-    """A figure of an 8-bit image at least ``side`` pixels wide on screen:
-    large images as they are (zoomed by CSS), small ones enlarged first."""
-    h, w = rgb8.shape[:2]
-    if max(h, w) < 64:                      # thumbnails: enlarge the pixels themselves
-        rgb8 = enlarge(rgb8, side)
-        h, w = rgb8.shape[:2]
-    zoom = max(1, int(np.ceil(side / max(h, w))))
+def img(picture: Picture, caption: str, side: int = MIN_SIDE) -> str:
+    """A figure of ``picture`` at least ``side`` pixels wide on screen: each
+    pixel shown as a whole number of screen pixels (CSS: pixelated)."""
+    zoom = max(1, int(np.ceil(side / max(picture.height, picture.width))))
     alt = html.escape(re.sub(r"<[^>]+>", " ", caption))
-    return (f'<figure><img src="{png_uri(rgb8)}" alt="{alt}" '
-            f'width="{w * zoom}" height="{h * zoom}"><figcaption>{caption}</figcaption></figure>')
+    return (f'<figure><img src="{picture.uri}" alt="{alt}" width="{picture.width * zoom}" '
+            f'height="{picture.height * zoom}"><figcaption>{caption}</figcaption></figure>')
 
 
 OUTCOME_CLASS = {"pass": "ok", "inconclusive": "warn", "fail": "bad"}

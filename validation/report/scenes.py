@@ -11,10 +11,11 @@ import numpy as np
 
 from mcillum import files, images
 
-from ..results import SceneResult, layout, ranking_text
+from ..results import KINDS, SceneResult, layout, ranking_text, ratio_text
 from ..stats import metrics
 from . import charts
-from .parts import ERROR_CMAP, error_rgb, flip_rgb, fmt, img, outcome, swatch, worst_window
+from .parts import (ERROR_LEVELS, FLIP_LEVELS, error_map, flip_map, fmt, img, map_colours,
+                    outcome, render, swatch, worst_window)
 
 
 def scene_section(scene: SceneResult, run_dir: str, colours: dict,
@@ -90,6 +91,18 @@ def _timed_on(sp) -> str:
             f"{html.escape(', '.join(sp.timed_on))}.")
 
 
+def _load(sp) -> str:
+    """A warning where other processes loaded the machine while this stage's
+    renders were timed (results before minor version 9 say nothing)."""
+    if not getattr(sp, "loaded", False):
+        return ""
+    return (f"<p class=loaded>The machine was loaded: other processes used "
+            f"{sp.others_cores:.2f} of its {sp.cores} cores on average while these renders "
+            "were timed. The times below are a loaded machine's; the estimators were "
+            "interleaved, so their ratios hold while the load was steady. Run again on a "
+            "quiet machine to compare with other runs.</p>")
+
+
 def _speed_section(scene: SceneResult, run_dir: str, colours: dict) -> str:
     """The speed-and-images stage: equal-time images at the display
     resolution, error and FLIP maps, the worst region, accuracy against time."""
@@ -105,31 +118,33 @@ def _speed_section(scene: SceneResult, run_dir: str, colours: dict) -> str:
         if not np.isnan(sp.mean_flip.get(n, np.nan)):
             flips[n] = files.read_exr(os.path.join(d, f"{n}.exr"), "flip")[0][..., 0]
     side = 256                              # 128² at 2×, 256² as it is
-    row = [img(images.tonemap(ref, ev), f"reference (path)<br>{sp.reference.spp} spp", side)]
+    shown = lambda a: render(images.tonemap(a, ev))  # noqa: E731
+    row = [img(shown(ref), f"reference (path)<br>{sp.reference.spp} spp", side)]
     for n in names:
         x, meta = shots[n]
         flip = sp.mean_flip.get(n, np.nan)
-        row.append(img(images.tonemap(x, ev), f"{swatch(n, colours)}<br>{meta['spp']} spp, "
+        row.append(img(shown(x), f"{swatch(n, colours)}<br>{meta['spp']} spp, "
                         f"{meta['render_seconds'] * 1e3:.0f} ms"
                         + ("" if np.isnan(flip) else f", FLIP {flip:.3f}"), side))
     errors = [metrics.relative_error_map(shots[n][0], ref) for n in names]
     positive = np.concatenate([e[e > 0].ravel() for e in errors] + [np.array([1e-3])])
     vmax = max(float(np.percentile(positive, 99)), 1e-2)
     vmin = vmax / 1e3
-    err_row = [img(error_rgb(e, vmin, vmax), f"{n}: mean {e.mean():.3g}", side)
+    err_row = [img(error_map(e, vmin, vmax), f"{n}: mean {e.mean():.3g}", side)
                for n, e in zip(names, errors)]
-    flip_row = [img(flip_rgb(flips[n]), f"{n}: mean FLIP {sp.mean_flip[n]:.3f}", side)
+    flip_row = [img(flip_map(flips[n]), f"{n}: mean FLIP {sp.mean_flip[n]:.3f}", side)
                 for n in names if n in flips]
     y, x0, size = worst_window(errors)
     crop = lambda a: a[y:y + size, x0:x0 + size]  # noqa: E731
-    crops = [img(images.tonemap(crop(ref), ev), "reference", side // 2)]
-    crops += [img(images.tonemap(crop(shots[n][0]), ev), n, side // 2) for n in names]
+    crops = [img(shown(crop(ref)), "reference", side // 2)]
+    crops += [img(shown(crop(shots[n][0])), n, side // 2) for n in names]
     notes = "".join(f"<li>{html.escape(n)}</li>" for n in sp.notes)
     ref_info = sp.reference
     capped = f" — capped ({html.escape(ref_info.capped)})" if ref_info.capped else ""
     return f"""
 <h3>Equal time at {sp.res}²: {top.seconds * 1e3:.0f} ms per render</h3>
-<p>Every estimator got the time Mitsuba's <code>path</code> needs for {top.path_spp} spp;
+<p>Every estimator got the time Mitsuba's <code>path</code> takes for {top.path_spp} spp by its
+cost model;
 its spp come from its own cost model t = a + b·spp. Reference: <code>path</code>,
 {ref_info.spp} spp in {ref_info.passes} passes{capped}.{_timed_on(sp)} Tone mapping for every image:
 {_scaling(ev)}, clipped to [0, 1], sRGB. Captions: spp and the measured time of the
@@ -137,15 +152,17 @@ render shown.</p>
 <div class=row>{''.join(row)}</div>
 <h4>Relative error |x−r|/(|r|+{metrics.EPSILON}) of these renders</h4>
 <div class=row>{''.join(err_row)}</div>
-<div class=bar>{charts.colour_bar(vmin, vmax, ERROR_CMAP, "relative error (shared scale)")}</div>
+<div class=bar>{charts.colour_bar(vmin, vmax, map_colours(ERROR_LEVELS),
+                                  "relative error (shared scale)")}</div>
 <h4>FLIP (HDR mode: flip-evaluator tone-maps both images, ACES, exposures from the
 reference; 0 = no visible difference, 1 = the largest)</h4>
 <div class=row>{''.join(flip_row) or '<p>FLIP is undefined here: the reference is black.</p>'}</div>
-<div class=bar>{charts.colour_bar(0.0, 1.0, ERROR_CMAP, "FLIP", log=False)}</div>
+<div class=bar>{charts.colour_bar(0.0, 1.0, map_colours(FLIP_LEVELS), "FLIP", log=False)}</div>
 <h4>Worst region ({size}×{size} px at x={x0}, y={y}, by summed relative error)</h4>
 <div class=row>{''.join(crops)}</div>
 <h4>Accuracy against time</h4>
 <div class=row>{charts.error_vs_time(scene, colours)}</div>
+{_load(sp)}
 {_speed_table(sp, colours)}
 {'<ul class=notes>' + notes + '</ul>' if notes else ''}"""
 
@@ -158,17 +175,27 @@ def _speed_table(sp, colours: dict) -> str:
         c, r, p = sp.cost_model[n], sp.efficiency_vs_path[n], rank[n]
         tied = f" (tie: {', '.join(p.tied_with)})" if p.tied_with else ""
         wall = float(np.median(run.wall_seconds)) * 1e3
+        tries = (f" <span class=desc>({len(run.tries)} tries)</span>"
+                 if len(run.tries) > 1 else "")
         rows.append(
             f"<tr><td>{swatch(n, colours)}</td><td>{p.rank}{html.escape(tied)}</td>"
-            f"<td>{fmt(r.ratio)} [{fmt(r.ci.low)}, {fmt(r.ci.high)}]</td>"
+            f"<td>{html.escape(ratio_text(r))}</td>"
             f"<td>{fmt(run.relmse)} [{fmt(run.relmse_ci.low)}, {fmt(run.relmse_ci.high)}]</td>"
-            f"<td>{run.spp}</td><td class={'ok' if run.on_budget else 'warn'}>{wall:.0f}</td>"
+            f"<td>{run.spp}</td><td class={'ok' if run.on_budget else 'warn'}>{wall:.0f}{tries}</td>"
             f"<td>{c.fixed_s * 1e3:.1f} [{c.fixed_s_ci.low * 1e3:.1f}, "
             f"{c.fixed_s_ci.high * 1e3:.1f}]</td>"
             f"<td>{c.per_spp_s * 1e3:.2f} [{c.per_spp_s_ci.low * 1e3:.2f}, "
             f"{c.per_spp_s_ci.high * 1e3:.2f}]</td></tr>")
+    kinds = [f"<li><b>{k.replace('_', '-')}</b>: {html.escape(v)}</li>" for k, v in KINDS.items()
+             if k != "unbiased" and any(r.kind == k for r in sp.efficiency_vs_path.values())]
+    share = (f"{fmt(top.reference_relmse)} ± {fmt(top.reference_relmse_se)}"
+             if top.reference_relmse_se else fmt(top.reference_relmse))
     return f"""<p>At {top.seconds * 1e3:.0f} ms, most efficient first ("=": the 95 % intervals
-overlap, a tie): <b>{html.escape(ranking_text(sp.ranking))}</b>.</p>
+overlap, a tie): <b>{html.escape(ranking_text(sp.ranking))}</b>. Efficiency is
+1/((relMSE − the reference's share)·time): the reference's own noise adds {share} to every
+relMSE here, and is taken out. A render whose median missed its budget by more than 10 % was
+rendered again at corrected spp ("tries"); the one nearest the budget is shown.</p>
+{'<ul class=notes>' + ''.join(kinds) + '</ul>' if kinds else ''}
 <table><tr><th>estimator</th><th>rank</th><th>efficiency ÷ path [95 % CI]</th>
 <th>relMSE [95 % CI]</th><th>spp</th><th>median ms (K = {sp.renders})</th>
 <th>fixed cost a, ms [95 % CI]</th><th>per spp b, ms [95 % CI]</th></tr>
