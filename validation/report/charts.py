@@ -206,7 +206,7 @@ def efficiency_summary(results: Results, colours: dict) -> str:
     ax.set_xticks(range(len(scenes)), [s.name for s in scenes], fontsize=8)
     ax.set_ylabel("efficiency / efficiency of path")
     ax.set_title("Efficiency 1/(relMSE·time) relative to Mitsuba's path, at equal time\n"
-                 "(hatched //: a lower bound, the reference's noise; ..: biased by design)",
+                 "(hatched //: a lower bound only; ..: biased by design)",
                  fontsize=9)
     ax.grid(True, axis="y", which="both", alpha=0.3)
     # (plain swatches: a hatched first bar would hatch its estimator's key)

@@ -142,13 +142,16 @@ def wall_text(results: Results) -> str:
 
 def ratio_text(r) -> str:
     """An efficiency ratio (speed.Ratio) as the summary and the report show
-    it: "0.48 [0.39, 0.59]"; a lower bound (the error is the reference's
-    noise) as "≥ 2.1 (reference-limited)"; an estimator biased by design's
-    with "(biased: this budget only)"."""
+    it: "0.48 [0.39, 0.59]"; a lower bound as "≥ 2.1 (reference-limited)"
+    (the error is the reference's noise) or "≥ 0.02 (its relMSE too
+    uncertain …)" (rare large errors); an estimator biased by design's with
+    "(biased: this budget only)"."""
     if r is None or not np.isfinite(r.ratio):
         return "—"
-    if not np.isfinite(r.ci.high):
-        return f"≥ {r.ci.low:.3g} (reference-limited)"
+    if not np.isfinite(r.ci.high):          # (the net relMSE may be 0)
+        why = ("reference-limited" if r.kind == "reference_limited"
+               else "its relMSE too uncertain for an upper end")
+        return f"≥ {r.ci.low:.3g} ({why})"
     text = f"{r.ratio:.3g} [{r.ci.low:.3g}, {r.ci.high:.3g}]"
     extra = {"reference_limited": " (reference-limited)",
              "biased": " (biased: this budget only)"}.get(r.kind, "")

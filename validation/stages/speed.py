@@ -66,6 +66,7 @@ PILOT_ROUNDS = 3
 MAX_SCALE = 64             # budgets grow at most this much to outweigh the fixed cost
 ON_BUDGET = 0.10           # a median wall time within ±10 % of its budget
 CORRECTIONS = 2            # re-renders of an estimator that missed a budget
+LOADED_CORRECTIONS = 3     # ... where other processes loaded the machine meanwhile
 #: Other processes using more than this many cores on average during the
 #: timed renders: the machine was loaded, and the report says so.
 LOADED = 0.25
@@ -139,8 +140,9 @@ def render_budgets(ctx) -> None:
     as it was at the budget before, :func:`_carried`), then, for an
     estimator whose median missed the budget by more than ON_BUDGET, again
     at the spp the measured times say (:func:`corrected`), at most
-    CORRECTIONS times; the try whose median came nearest the budget is the
-    one measured."""
+    CORRECTIONS times (LOADED_CORRECTIONS where other processes loaded the
+    machine during the last try); the try whose median came nearest the
+    budget is the one measured."""
     sub, d = ctx.display, ctx.plan.display
     path = ctx.costs[REFERENCE]
     ctx.budgets = [(costs.seconds_at(path, s), s) for s in ctx.budget_path_spp]
@@ -157,7 +159,7 @@ def render_budgets(ctx) -> None:
         todo = dict(spp) if not j else {
             n: _carried(ctx.costs[n], ctx.budget_tries[-1][n], ctx.budgets[j - 1][0], budget)
             for n in spp}
-        for attempt in range(1 + CORRECTIONS):
+        for attempt in range(1 + LOADED_CORRECTIONS):
             bigger = {n: s for n, s in todo.items() if s > warmed[n]}
             if bigger:                          # (a new, larger wavefront: timing.py)
                 timing.warm(sub.run.executor, _job(sub), bigger,
@@ -175,7 +177,8 @@ def render_budgets(ctx) -> None:
                     stacks_j[n] = u         # (a correction that did worse is not kept)
             todo = {n: nxt for n in got
                     if (nxt := corrected(ctx.costs[n], tries[n], budget)) is not None}
-            if not todo:
+            loaded = any((t[-1].others_cores or 0.0) > LOADED for t in tries.values())
+            if not todo or attempt >= (LOADED_CORRECTIONS if loaded else CORRECTIONS):
                 break
         ctx.budget_stacks.append({n: stacks_j[n] for n in spp})
         ctx.budget_tries.append(tries)
@@ -187,18 +190,24 @@ def corrected(model, tries: list[Try], budget: float) -> int | None:
     """The spp of the next try of an estimator whose last try's median wall
     time missed ``budget`` by more than ON_BUDGET; None where it did not, or
     where no other spp would do better (1 spp is already too slow). The
-    secant through the model's fixed cost (spp 0, a) and the last median,
-    its step at most ×2 either way: a secant through two tries' medians
-    chased the load of a shared machine (a try 30 % slower than the one
-    before sent an estimator from 34 spp to 1)."""
+    line through the model's fixed cost (spp 0, a) fitted to every render
+    of every try so far, its step at most ×2 either way: on a loaded
+    machine one try's median swung by 30-50 %, and a secant through the
+    last one or two chased that noise (34 spp, then 1)."""
     last = tries[-1]
     median = float(np.median(last.wall_seconds))
     if abs(median - budget) <= ON_BUDGET * budget:
         return None
-    fixed = min(max(model.fixed_s, 0.0), 0.5 * median)
-    scale = (budget - fixed) / (median - fixed)
-    spp = max(1, int(round(last.spp * min(max(scale, 0.5), 2.0))))
-    return None if spp == last.spp else spp
+    fixed = min(max(model.fixed_s, 0.0), 0.5 * min(float(np.median(t.wall_seconds))
+                                                  for t in tries))
+    spp = np.concatenate([np.full(len(t.wall_seconds), t.spp, float) for t in tries])
+    seconds = np.concatenate([np.asarray(t.wall_seconds, float) for t in tries])
+    slope = float(np.sum((seconds - fixed) * spp) / np.sum(spp ** 2))
+    if slope <= 0:
+        return None
+    step = min(max((budget - fixed) / slope / last.spp, 0.5), 2.0)
+    nxt = max(1, int(round(last.spp * step)))
+    return None if nxt == last.spp == 1 else nxt
 
 
 def _carried(model, before: list[Try], before_budget: float, budget: float) -> int:
