@@ -180,9 +180,9 @@ def efficiency_summary(results: Results, colours: dict) -> str:
     scenes = [s for s in results.scenes if s.speed is not None]
     names = [n for n in dict.fromkeys(n for s in scenes for n in s.speed.efficiency_vs_path)
              if n != reference]
-    fig, ax = plt.subplots(figsize=(7.5, 3.6))
+    fig, ax = plt.subplots(figsize=(max(7.5, 2.0 + 0.75 * len(scenes)), 3.9))
     width = 0.8 / max(len(names), 1)
-    hatch = {"reference_limited": "//", "biased": ".."}
+    hatch = {"reference_limited": "//", "biased": "xx"}
     for j, name in enumerate(names):
         ratio, low, high, kinds = [], [], [], []
         for s in scenes:
@@ -203,10 +203,11 @@ def efficiency_summary(results: Results, colours: dict) -> str:
                 bar.set_edgecolor("white")
     line = ax.axhline(1.0, color=colours.get(reference, "k"), lw=1, ls="--", label="path = 1")
     ax.set_yscale("log")
-    ax.set_xticks(range(len(scenes)), [s.name for s in scenes], fontsize=8)
+    ax.set_xticks(range(len(scenes)), [s.name for s in scenes], fontsize=8, rotation=30,
+                  ha="right")
     ax.set_ylabel("efficiency / efficiency of path")
     ax.set_title("Efficiency 1/(relMSE·time) relative to Mitsuba's path, at equal time\n"
-                 "(hatched //: a lower bound only; ..: biased by design)",
+                 "(hatched //: a lower bound only; xx: biased by design)",
                  fontsize=9)
     ax.grid(True, axis="y", which="both", alpha=0.3)
     # (plain swatches: a hatched first bar would hatch its estimator's key)
