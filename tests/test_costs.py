@@ -8,7 +8,7 @@ import pytest
 from scipy import stats
 
 from mcillum.validation.results import Interval
-from mcillum.validation.stages import speed
+from mcillum.validation.stages import budgets, speed
 from mcillum.validation.stats import costs
 
 from conftest import disagreements
@@ -150,7 +150,7 @@ def test_two_runs_are_compared_on_ratios_and_reversed_pairs():
 
 
 def test_a_missed_budget_is_corrected_toward_it_in_bounded_steps():
-    """speed.corrected: the next try's spp from the last try's median and
+    """budgets.corrected: the next try's spp from the last try's median and
     the model's fixed cost; none where the median is within ±10 % or 1 spp
     is already too slow; a step is at most ×2 either way, so one try slowed
     by the machine's load cannot send an estimator to 1 spp."""
@@ -161,13 +161,13 @@ def test_a_missed_budget_is_corrected_toward_it_in_bounded_steps():
     def at(spp, factor=1.0):
         return Try(spp=spp, wall_seconds=[(A + B * spp) * factor] * 4)
 
-    assert speed.corrected(model, [at(40)], budget) is None
-    assert speed.corrected(model, [at(40, 1.05)], budget) is None
-    slow = speed.corrected(model, [at(40, 1.3)], budget)
+    assert budgets.corrected(model, [at(40)], budget) is None
+    assert budgets.corrected(model, [at(40, 1.05)], budget) is None
+    slow = budgets.corrected(model, [at(40, 1.3)], budget)
     assert slow < 40 and abs((A + B * slow) * 1.3 - budget) <= 0.1 * budget
-    assert speed.corrected(model, [at(40, 0.2)], budget) == 80           # at most ×2
-    assert speed.corrected(model, [at(40, 8.0)], budget) == 20           # at most ÷2
-    assert speed.corrected(model, [at(1, 1.0)], A / 2) is None          # 1 spp too slow
+    assert budgets.corrected(model, [at(40, 0.2)], budget) == 80           # at most ×2
+    assert budgets.corrected(model, [at(40, 8.0)], budget) == 20           # at most ÷2
+    assert budgets.corrected(model, [at(1, 1.0)], A / 2) is None          # 1 spp too slow
 
 
 def test_efficiency_interval_covers_under_skewed_errors_and_drifting_timings():

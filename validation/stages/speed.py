@@ -10,8 +10,9 @@ in a sub-context of the scene's (``ctx.display``). Its stages, in order:
                        spp; then ``repeats`` rounds at the spp each estimator
                        needs for ¼ of and the whole smallest budget → per estimator
                        t = a + b·spp with bootstrap intervals (stats/costs.py)
-    render_budgets     budgets T = `path`'s model at ``path_spp`` (scaled by one
-                       factor until every a ≤ 10 % of the smallest T);
+    render_budgets     (stages/budgets.py) budgets T = `path`'s model at
+                       ``path_spp`` (scaled by one factor until every a ≤ 10 %
+                       of the smallest T);
                        K renders per estimator and budget at
                        spp = max(1, round((T − a)/b)), interleaved, each timed;
                        an estimator whose median missed T by more than 10 %
@@ -55,21 +56,16 @@ from mcillum.integrators import registry
 
 from ..plan import seeds
 from ..results import Budget, BudgetRun, Ratio, Speed, Try, layout
-from ..run import load, references, stacks, timing
+from ..run import load, references, timing
 from ..run.stacks import Stack
 from ..stats import costs, metrics
-from . import common
+from . import budgets, common
+from .budgets import LOADED, ON_BUDGET, REFERENCE
+from .budgets import job as _job
 
-REFERENCE = registry.REFERENCE
 PILOT_SPP = (1, 16)
 PILOT_ROUNDS = 3
 MAX_SCALE = 64             # budgets grow at most this much to outweigh the fixed cost
-ON_BUDGET = 0.10           # a median wall time within ±10 % of its budget
-CORRECTIONS = 2            # re-renders of an estimator that missed a budget
-LOADED_CORRECTIONS = 3     # ... where other processes loaded the machine meanwhile
-#: Other processes using more than this many cores on average during the
-#: timed renders: the machine was loaded, and the report says so.
-LOADED = 0.25
 #: Per-render relMSE varying more than this (coefficient of variation): rare
 #: large errors carry it, and its interval may be too narrow. Synthetic
 #: lognormal σ = 1 and Pareto errors covered 80-90 % at K = 4; the quick
@@ -135,114 +131,10 @@ def budget_spp(models: dict, path_spp) -> list[int]:
 # --------------------------------- Budgets ---------------------------------------
 
 def render_budgets(ctx) -> None:
-    """K timed renders per estimator at every budget (or the cached ones):
-    at the spp the cost model predicts (at the second budget on, as far off
-    as it was at the budget before, :func:`_carried`), then, for an
-    estimator whose median missed the budget by more than ON_BUDGET, again
-    at the spp the measured times say (:func:`corrected`), at most
-    CORRECTIONS times (LOADED_CORRECTIONS where other processes loaded the
-    machine during the last try); the try whose median came nearest the
-    budget is the one measured."""
-    sub, d = ctx.display, ctx.plan.display
-    path = ctx.costs[REFERENCE]
-    ctx.budgets = [(costs.seconds_at(path, s), s) for s in ctx.budget_path_spp]
-    _note_overhead(ctx)
-    if ctx.budget_stacks:                                # from the cache
-        return
-    spps = [{n: path_spp if n == REFERENCE else costs.spp_for(m, budget)
-             for n, m in ctx.costs.items()} for budget, path_spp in ctx.budgets]
-    # (untimed: the first render at a larger wavefront allocates memory, timing.py)
-    warmed = {n: max(s[n] for s in spps) for n in spps[0]}
-    timing.warm(sub.run.executor, _job(sub), warmed, seeds.stream("speed_timing").seed(0))
-    for j, ((budget, _), spp) in enumerate(zip(ctx.budgets, spps)):
-        stacks_j, tries = {}, {n: [] for n in spp}
-        todo = dict(spp) if not j else {
-            n: _carried(ctx.costs[n], ctx.budget_tries[-1][n], ctx.budgets[j - 1][0], budget)
-            for n in spp}
-        for attempt in range(1 + LOADED_CORRECTIONS):
-            bigger = {n: s for n, s in todo.items() if s > warmed[n]}
-            if bigger:                          # (a new, larger wavefront: timing.py)
-                timing.warm(sub.run.executor, _job(sub), bigger,
-                            seeds.stream("speed_timing").seed(0))
-                warmed.update(bigger)
-            got = stacks.interleaved(
-                sub, {n: sub.integrators[n] for n in todo}, todo, d.renders,
-                seeds.stream("speed", j).take(d.renders),
-                f"{sub.label} {budget * 1e3:.0f} ms" + (f" (again: {len(todo)})"
-                                                        if attempt else ""), timed=True)
-            for n, u in got.items():
-                tries[n].append(Try(spp=u.spp, wall_seconds=[float(x) for x in u.seconds],
-                                    others_cores=load.cores(u.others, u.seconds)))
-                if _closest(tries[n], budget) == len(tries[n]) - 1:
-                    stacks_j[n] = u         # (a correction that did worse is not kept)
-            todo = {n: nxt for n in got
-                    if (nxt := corrected(ctx.costs[n], tries[n], budget)) is not None}
-            loaded = any((t[-1].others_cores or 0.0) > LOADED for t in tries.values())
-            if not todo or attempt >= (LOADED_CORRECTIONS if loaded else CORRECTIONS):
-                break
-        ctx.budget_stacks.append({n: stacks_j[n] for n in spp})
-        ctx.budget_tries.append(tries)
-    ctx.timed_on = sub.run.executor.timed_on()
-    _save_cache(ctx)
-
-
-def corrected(model, tries: list[Try], budget: float) -> int | None:
-    """The spp of the next try of an estimator whose last try's median wall
-    time missed ``budget`` by more than ON_BUDGET; None where it did not, or
-    where no other spp would do better (1 spp is already too slow). The
-    line through the model's fixed cost (spp 0, a) fitted to every render
-    of every try so far, its step at most ×2 either way: on a loaded
-    machine one try's median swung by 30-50 %, and a secant through the
-    last one or two chased that noise (34 spp, then 1)."""
-    last = tries[-1]
-    median = float(np.median(last.wall_seconds))
-    if abs(median - budget) <= ON_BUDGET * budget:
-        return None
-    fixed = min(max(model.fixed_s, 0.0), 0.5 * min(float(np.median(t.wall_seconds))
-                                                  for t in tries))
-    spp = np.concatenate([np.full(len(t.wall_seconds), t.spp, float) for t in tries])
-    seconds = np.concatenate([np.asarray(t.wall_seconds, float) for t in tries])
-    slope = float(np.sum((seconds - fixed) * spp) / np.sum(spp ** 2))
-    if slope <= 0:
-        return None
-    step = min(max((budget - fixed) / slope / last.spp, 0.5), 2.0)
-    nxt = max(1, int(round(last.spp * step)))
-    return None if nxt == last.spp == 1 else nxt
-
-
-def _carried(model, before: list[Try], before_budget: float, budget: float) -> int:
-    """The first try's spp at ``budget``, after a smaller ``before_budget``
-    whose ``before`` tries were measured: the model's spp for the time
-    ``budget`` takes if the model is as far off as it was at the try nearest
-    that budget (a factor within ×2 either way). On a quiet machine the
-    renders at a scene's largest budget took 25-35 % longer than the model,
-    fitted at small spp, said, for every estimator: each rendered twice."""
-    near = before[_closest(before, before_budget)]
-    predicted = costs.seconds_at(model, near.spp)
-    off = float(np.median(near.wall_seconds)) / predicted if predicted > 0 else 1.0
-    return costs.spp_for(model, budget / min(max(off, 0.5), 2.0))
-
-
-def _closest(tries: list[Try], budget: float) -> int:
-    """The index of the try whose median is nearest ``budget``."""
-    return min(range(len(tries)),
-               key=lambda i: abs(float(np.median(tries[i].wall_seconds)) - budget))
-
-
-def _job(sub):
-    """``job(name, spp, seed)`` of the display scene (timing.py)."""
-    return lambda name, spp, seed: sub.job(sub.integrators[name], spp, seed)
-
-
-def _note_overhead(ctx) -> None:
-    smallest = ctx.budgets[0][0]
-    for n, m in ctx.costs.items():
-        share = costs.overhead_share(m, smallest)
-        if share > costs.MAX_OVERHEAD:
-            ctx.notes.append(
-                f"{n}: its fixed cost {m.fixed_s * 1e3:.1f} ms is {100 * share:.0f} % of the "
-                f"smallest budget ({smallest * 1e3:.1f} ms), over the 10 % the stage aims "
-                "for: its times at that budget are partly launch overhead")
+    """K timed renders per estimator at every budget, met by correction
+    (stages/budgets.py), kept in the run directory; or the kept ones."""
+    if budgets.render(ctx):
+        _save_cache(ctx)
 
 
 # -------------------------------- Reference --------------------------------------
