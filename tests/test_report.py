@@ -54,8 +54,8 @@ def synthetic_speed(rng, res=32) -> Speed:
         ratio, ci = costs.ratio_interval(r.relmse_per_render, r.wall_seconds,
                                          top["path"].relmse_per_render, top["path"].wall_seconds)
         ratios[n] = Ratio(ratio=ratio, ci=ci)
-    ranking = costs.ranking({n: costs.efficiency_interval(r.relmse_per_render, r.wall_seconds)
-                             for n, r in top.items()})
+    eff = {n: costs.efficiency(r.relmse_per_render, r.wall_seconds) for n, r in top.items()}
+    ranking = costs.ranking({n: (e.value, e.ci) for n, e in eff.items()})
     return Speed(res=res, renders=4, cost_model=models, budgets=budgets,
                  efficiency_vs_path=ratios, ranking=ranking, reference=reference_summary(),
                  mean_flip={n: 0.1 * (3 - i) for i, n in enumerate(ESTIMATORS)},

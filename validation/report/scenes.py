@@ -11,7 +11,7 @@ import numpy as np
 
 from mcillum import files, images
 
-from ..results import KINDS, SceneResult, layout, ranking_text, ratio_text
+from ..results import SceneResult, kinds_shown, layout, ranking_text, ratio_text
 from ..stats import metrics
 from . import charts
 from .parts import (ERROR_LEVELS, FLIP_LEVELS, error_map, flip_map, fmt, img, map_colours,
@@ -186,8 +186,7 @@ def _speed_table(sp, colours: dict) -> str:
             f"{c.fixed_s_ci.high * 1e3:.1f}]</td>"
             f"<td>{c.per_spp_s * 1e3:.2f} [{c.per_spp_s_ci.low * 1e3:.2f}, "
             f"{c.per_spp_s_ci.high * 1e3:.2f}]</td></tr>")
-    kinds = [f"<li><b>{k.replace('_', '-')}</b>: {html.escape(v)}</li>" for k, v in KINDS.items()
-             if k != "unbiased" and any(r.kind == k for r in sp.efficiency_vs_path.values())]
+    kinds = [f"<li><b>{k}</b>: {html.escape(v)}</li>" for k, v in kinds_shown(sp).items()]
     share = (f"{fmt(top.reference_relmse)} ± {fmt(top.reference_relmse_se)}"
              if top.reference_relmse_se else fmt(top.reference_relmse))
     return f"""<p>At {top.seconds * 1e3:.0f} ms, most efficient first ("=": the 95 % intervals

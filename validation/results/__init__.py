@@ -25,6 +25,6 @@ from .scene import (Convergence, EstimatorResult, RunStats, SceneResult,  # noqa
                     Unbiasedness)
 from .speed import (KINDS, Budget, BudgetRun, CostModel, Interval, Placement, Ratio,  # noqa: F401
                     Speed, Try)
-from .tables import (CSV_FIELDS, counts_line, quadrature_summary, ranking_text,  # noqa: F401
-                     ratio_text, speed_summary, summary, wall_text, write_csv,
+from .tables import (CSV_FIELDS, counts_line, kinds_shown, quadrature_summary,  # noqa: F401
+                     ranking_text, ratio_text, speed_summary, summary, wall_text, write_csv,
                      write_junit, write_summary)

@@ -173,8 +173,14 @@ def speed_summary(speed: Speed) -> list[str]:
                      f" | {run.relmse:.3g} [{run.relmse_ci.low:.3g}, {run.relmse_ci.high:.3g}]"
                      f" | {ratio} |")
     return lines + [f"- {n}" for n in speed.notes] + \
-        [f"- efficiency: {k.replace('_', '-')}: {v}" for k, v in KINDS.items()
-         if any(r.kind == k for r in speed.efficiency_vs_path.values()) and k != "unbiased"]
+        [f"- efficiency: {k}: {v}" for k, v in kinds_shown(speed).items()]
+
+
+def kinds_shown(speed: Speed) -> dict[str, str]:
+    """What the stage's efficiency figures other than plain unbiased ones
+    mean (KINDS), by the name the page and summary give them."""
+    found = {r.kind for r in speed.efficiency_vs_path.values()}
+    return {k.replace("_", "-"): v for k, v in KINDS.items() if k != "unbiased" and k in found}
 
 
 def _failure_cells(case: CaseResult, est) -> str:

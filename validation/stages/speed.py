@@ -16,8 +16,9 @@ in a sub-context of the scene's (``ctx.display``). Its stages, in order:
                        K renders per estimator and budget at
                        spp = max(1, round((T − a)/b)), interleaved, each timed;
                        an estimator whose median missed T by more than 10 %
-                       renders its K again at the spp its measured times say
-                       (secant), at most twice; every try is kept
+                       renders its K again at the spp its measured times say,
+                       at most twice (three times on a loaded machine); every
+                       try is kept
     display_reference  `path` until its standard error is at most the profile's
                        ``display_reference_fraction`` (25 %) of `path`'s own RMSE
                        at the largest budget (run/references.py: adaptive,
@@ -157,24 +158,24 @@ def measure_speed(ctx) -> None:
     share = costs.reference_share(r, ref.variance_of_mean, ref.passes)
     budgets = []
     for j, ((budget, path_spp), by_name) in enumerate(zip(ctx.budgets, ctx.budget_stacks)):
-        tries = ctx.budget_tries[j] if j < len(ctx.budget_tries) else {}
-        runs = {n: _budget_run(ctx, n, u, budget, r, tries.get(n, [])) for n, u in by_name.items()}
+        runs = {n: _budget_run(ctx, n, u, budget, r, ctx.budget_tries[j][n])
+                for n, u in by_name.items()}
         budgets.append(Budget(seconds=budget, path_spp=path_spp, estimators=runs,
                               reference_relmse=share.value, reference_relmse_se=share.se))
     top = budgets[-1].estimators
     base = top[REFERENCE]
+    eff = {n: costs.efficiency(run.relmse_per_render, run.wall_seconds, share)
+           for n, run in top.items()}
     ratios = {}
     for n, run in top.items():
-        ratio, ci = costs.ratio_interval(run.relmse_per_render, run.wall_seconds,
-                                         base.relmse_per_render, base.wall_seconds, share)
+        ratio, ci = costs.ratio(eff[n], eff[REFERENCE],
+                                min(len(run.relmse_per_render), len(base.relmse_per_render)))
         ratios[n] = Ratio(ratio=ratio, ci=ci, kind=_kind(n, run, share))
         if ratios[n].kind == "reference_limited":
             ctx.notes.append(f"{n}: its relMSE {run.relmse:.3g} is within 2× of the "
                              f"reference's own share {share.value:.3g}: the reference "
                              "limits it, and its efficiency is a lower bound")
-    ranking = costs.ranking({n: costs.efficiency_interval(run.relmse_per_render,
-                                                          run.wall_seconds, share)
-                             for n, run in top.items()})
+    ranking = costs.ranking({n: (e.value, e.ci) for n, e in eff.items()})
     others, cores, loaded = _load(ctx)
     flips = {n: metrics.flip(u.images[0], r) for n, u in ctx.budget_stacks[-1].items()}
     ctx.flip_maps = {n: f[0] for n, f in flips.items() if f is not None}

@@ -12,10 +12,12 @@ The numbers of the speed-and-images stage (stages/speed.py) and of
 * **spp for a budget** T: max(1, round((T − a)/b)) (:func:`spp_for`).
 * **relMSE at a budget**: the mean over K renders with a Student-t 95 %
   interval (K − 1 degrees of freedom), :func:`relmse_interval`.
-* **Efficiency** 1/(relMSE·t), t the mean wall time of the K renders; its
-  interval and that of a ratio of two efficiencies come from the delta
-  method on logarithms, with K − 1 degrees of freedom (conservative for a
-  ratio).
+* **Efficiency** 1/((relMSE − the reference's share)·t), t the mean wall
+  time of the K renders (:func:`efficiency`); its interval and that of a
+  ratio of two efficiencies (:func:`ratio`) come from the delta method on
+  logarithms, with K − 1 degrees of freedom (conservative for a ratio), the
+  share's standard error included; where the net relMSE is not above 0 at
+  95 %, only a lower bound.
 * **Ranking with ties**: A beats B only where their efficiency intervals
   separate; an estimator's rank is one plus the number that beat it.
 """
@@ -178,26 +180,27 @@ def efficiency(relmse, seconds, share: Share = Share()) -> Efficiency:
     return Efficiency(value, float("inf"), Interval(float(low), float("inf")), False)
 
 
-def efficiency_interval(relmse, seconds, share: Share = Share()) -> tuple[float, Interval]:
-    e = efficiency(relmse, seconds, share)
-    return e.value, e.ci
-
-
 def ratio_interval(relmse, seconds, base_relmse, base_seconds,
                    share: Share = Share()) -> tuple[float, Interval]:
     """Efficiency of one estimator over a base's (``path``) and its interval,
-    both net of the reference's ``share``. Where the estimator's error is
-    not resolved from the reference's noise the interval is a lower bound
-    (its upper end +inf)."""
-    e, e0 = efficiency(relmse, seconds, share), efficiency(base_relmse, base_seconds, share)
-    q = _t(min(len(relmse), len(base_relmse)))
-    if not e0.resolved:
+    both net of the reference's ``share`` (:func:`ratio`)."""
+    return ratio(efficiency(relmse, seconds, share), efficiency(base_relmse, base_seconds, share),
+                 min(len(relmse), len(base_relmse)))
+
+
+def ratio(e: Efficiency, base: Efficiency, renders: int) -> tuple[float, Interval]:
+    """Efficiency ``e`` over ``base``'s, of ``renders`` renders each at least,
+    and its interval. Where ``e`` is not resolved from the reference's noise
+    the interval is a lower bound (its upper end +inf); where ``base`` is
+    not, the ratio is NaN."""
+    q = _t(renders)
+    if not base.resolved:
         return float("nan"), Interval(0.0, float("inf"))
-    ratio = e.value / e0.value
+    value = e.value / base.value
     if not e.resolved:
-        return ratio, Interval(e.ci.low / e0.value * np.exp(-q * e0.log_se), float("inf"))
-    half = q * float(np.hypot(e.log_se, e0.log_se))
-    return ratio, Interval(ratio * np.exp(-half), ratio * np.exp(half))
+        return value, Interval(e.ci.low / base.value * np.exp(-q * base.log_se), float("inf"))
+    half = q * float(np.hypot(e.log_se, base.log_se))
+    return value, Interval(value * np.exp(-half), value * np.exp(half))
 
 
 def ranking(intervals: dict[str, tuple[float, Interval]]) -> list[Placement]:
