@@ -150,6 +150,9 @@ class IlluminationEstimator(mi.SamplingIntegrator):
     #: (ds, L_e/p)`` and ``emitter_pdf(scene, ref, ds, active) -> p``.
     sample_emitter = None
     emitter_pdf = None
+    #: Call :meth:`record_vertex` and :meth:`record_path` in the loop? Only an
+    #: estimator that learns from its own paths (guided_path) does.
+    records_paths = False
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)
@@ -293,6 +296,9 @@ class IlluminationEstimator(mi.SamplingIntegrator):
 
         pi, valid_ray = self.camera_hit(scene, ray, active)
 
+        # Which path this lane traces, for an estimator that learns from them
+        lane = self.path_index(ray) if self.records_paths else None
+
         # Previous vertex, for MIS weights of emitter hits
         prev_si = dr.zeros(mi.Interaction3f)
         prev_pdf = mi.Float(1)
@@ -338,6 +344,8 @@ class IlluminationEstimator(mi.SamplingIntegrator):
                 prev_pdf = pdf
                 prev_delta = delta
                 ray = si.spawn_ray(si.to_world(wo))
+                if dr.hint(self.records_paths, mode='scalar'):
+                    self.record_vertex(lane, depth, si, ray.d, pdf, delta, β, L, active_next)
 
             # --------------------- Stopping criterion ---------------------
 
@@ -353,6 +361,8 @@ class IlluminationEstimator(mi.SamplingIntegrator):
             active = active_next & ((depth < self.rr_depth) | rr_continue) & (β_max != 0)
             pi = scene.ray_intersect_preliminary(ray, coherent=False, active=active)
 
+        if dr.hint(self.records_paths, mode='scalar'):
+            self.record_path(lane, L)
         return dr.select(valid_ray, L, 0), valid_ray, []
 
     def camera_hit(self, scene, ray, active):
@@ -391,8 +401,31 @@ class IlluminationEstimator(mi.SamplingIntegrator):
         f_cos, bsdf_pdf = bsdf.eval_pdf(ctx, si, wo, active_em)
         w = mi.Float(1)
         if dr.hint(self.use_mis, mode='scalar'):
-            w = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, bsdf_pdf))
+            # (the other technique is the continuation: its pdf at ω)
+            p_cont = self.continuation_pdf(si, bsdf, ds.d, bsdf_pdf)
+            w = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, p_cont))
         return dr.select(active_em & (ds.pdf != 0), f_cos * em_weight * w, 0)
+
+    def continuation_pdf(self, si, bsdf, wo_world, bsdf_pdf):
+        """Density of :meth:`sample_direction` at world direction ``wo_world``
+        for the MIS weight of an emitter sample; ``bsdf_pdf`` is the BSDF's
+        there (the default: the continuation samples the BSDF)."""
+        return bsdf_pdf
+
+    # --------------- Learning from paths (records_paths only) ---------------
+
+    def path_index(self, ray):
+        """Index of each lane's path in the wavefront."""
+        raise NotImplementedError
+
+    def record_vertex(self, lane, depth, si, wo_world, pdf, delta, β, L, active):
+        """A vertex that continued along ``wo_world`` (density ``pdf``), with
+        the throughput β after it and the radiance L gathered before it."""
+        raise NotImplementedError
+
+    def record_path(self, lane, L):
+        """The radiance each path gathered in all."""
+        raise NotImplementedError
 
     def to_string(self) -> str:
         depth = -1 if self.max_depth == UNBOUNDED else self.max_depth
