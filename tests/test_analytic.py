@@ -109,9 +109,10 @@ def furnace_interior(variant, integrator, max_depth, albedo, first_seed=0):
 @pytest.mark.parametrize("name", ALL_ESTIMATORS)
 def test_interior_furnace_closed_form(variant, name, max_depth):
     """Depth convention, recursion and Russian roulette (rr_depth 5) at once."""
-    if name == "mis" and max_depth != 1:
-        pytest.skip("mis reproduces Mitsuba's path here, which misses this closed form "
-                    "by +0.11% (see test_path_misses_the_interior_closed_form)")
+    if twins.plugin_class(name).use_mis and max_depth != 1:
+        pytest.skip(f"{name} weights emitter hits as Mitsuba's path does (mis reproduces it), "
+                    "which misses this closed form by +0.11% (see "
+                    "test_path_misses_the_interior_closed_form; guided_path +0.10-0.14%)")
     albedo = 0.6
     values = furnace_interior(variant, name, max_depth, albedo)
     exact = interior_exact(max_depth, albedo, RADIANCE)
@@ -120,11 +121,11 @@ def test_interior_furnace_closed_form(variant, name, max_depth):
 
 
 # (scalar: 6 renders of 4² px resolve 5 % in the interior too rarely to
-# claim it: the cosine twin was rejected in 10 of 20 seed sets. mis: the
-# correct mis misses this closed form too, see above, so its twins show no
-# power here; test_agreement rejects them.)
+# claim it: the cosine twin was rejected in 10 of 20 seed sets. mis and
+# guided_path: the correct ones miss this closed form too, see above, so
+# their twins show no power here; test_agreement rejects them.)
 @pytest.mark.parametrize("variant_name, name, kind",
-                         [c for c in twin_cases([]) if c[1] != "mis"])
+                         [c for c in twin_cases([]) if not twins.plugin_class(c[1]).use_mis])
 def test_interior_furnace_rejects_broken_twins(use_variant, variant_name, name, kind):
     variant = use_variant(variant_name)
     values = furnace_interior(variant, twins.integrator(kind, name, {"max_depth": -1}), -1, 0.6)

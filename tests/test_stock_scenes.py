@@ -191,7 +191,8 @@ def test_textured_roughness_agrees_with_path(llvm, tmp_path, name):
 
 # ----------------------------------- Wrappers -----------------------------------
 
-@pytest.mark.parametrize("name", [n for n in EVERY if n not in ("emitter_sampling", "mis")])
+@pytest.mark.parametrize("name", [n for n in EVERY
+                                  if "delta_emitter" not in registry.facts(n).reaches])
 def test_refusal_holds_nested_in_moment(llvm, tmp_path, name):
     """`moment` calls the nested integrator's sample() without its render():
     a point light is still refused, with the message the estimator gives

@@ -1,0 +1,544 @@
+"""Path guiding: a path tracer (as `mis`) whose continuation direction comes
+from a one-sample mixture of the BSDF and a directional distribution learned
+from the renderer's own paths while it renders (after Müller et al. 2017,
+"Practical Path Guiding for Efficient Light-Transport Simulation")."""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from . import registry
+from .bsdf_sampling import sample_bsdf_direction
+from .emitter_sampling import emitter_direction_pdf, sample_emitter_direction
+from .estimator import IlluminationEstimator
+
+# ----------------------------- Strategy ---------------------------------
+# The learned part is a piecewise-constant density on the unit square, warped
+# to the hemisphere by the cosine warp (Shirley-Chiu's concentric map, as
+# mi.warp.square_to_cosine_hemisphere) in a frame built from the shading
+# normal alone, on the side the path arrived from: a uniform pmf is cosine
+# sampling, and a pmf ∝ the mean L_i over each of the res² cells makes
+# p ∝ L_i cos θ (the product a diffuse vertex wants). Directions on the
+# other side get density 0: the BSDF's share covers them.
+#     p(ω) = pmf[cell(ω)] · res² · cos θ / π
+
+
+def guide_frame(si) -> tuple:
+    """(frame of the shading normal, side): the frame depends on the normal
+    only (Frame3f's coordinate system), so every surface of one orientation
+    in a cell shares it; side ±1 is the hemisphere of ``si.wi``."""
+    n = si.sh_frame.n
+    return mi.Frame3f(n), dr.select(si.wi.z >= 0, 1.0, -1.0)
+
+
+def square_cell(u: mi.Point2f, res: int) -> mi.UInt32:
+    """Cell of square point ``u`` (row-major)."""
+    ix = dr.minimum(mi.UInt32(dr.maximum(u.x * res, 0)), res - 1)
+    iy = dr.minimum(mi.UInt32(dr.maximum(u.y * res, 0)), res - 1)
+    return iy * res + ix
+
+
+def sample_guide(cdf, base, res: int, u1: mi.Float, u2: mi.Point2f):
+    """(ω in the guide frame, upper side; cell): the cell whose inclusive
+    ``cdf`` entry (from ``base``) first exceeds ``u1``, by bisection; ``u2``
+    uniform in it, then the cosine warp."""
+    n = res * res
+    below = mi.UInt32(0)                      # cells whose cdf ≤ u1
+    step = n // 2
+    while step >= 1:                          # (unrolled: log2 n gathers)
+        mid = below + step
+        below = dr.select(_take(cdf, base + mid - 1) <= u1, mid, below)
+        step //= 2
+    c = dr.minimum(below, n - 1)
+    u = mi.Point2f((mi.Float(c % res) + u2.x) / res, (mi.Float(c // res) + u2.y) / res)
+    return mi.warp.square_to_cosine_hemisphere(u), c
+
+
+def guide_pdf(pmf, base, res: int, w: mi.Vector3f) -> mi.Float:
+    """Solid-angle density of :func:`sample_guide` at ``w`` (guide frame,
+    upper side; 0 below)."""
+    cell = square_cell(mi.warp.cosine_hemisphere_to_square(w), res)
+    return dr.select(w.z > 0, _take(pmf, base + cell) * (res * res) * w.z * dr.inv_pi, 0.0)
+
+
+def invert_guide(cdf, pmf, base, res: int, w: mi.Vector3f):
+    """(u1, u2) that :func:`sample_guide` maps to ``w`` (u1 the middle of its
+    cell's cdf step)."""
+    u = mi.warp.cosine_hemisphere_to_square(w)
+    c = square_cell(u, res)
+    u1 = _take(cdf, base + c) - 0.5 * _take(pmf, base + c)
+    return u1, mi.Point2f(u.x * res - mi.Float(c % res), u.y * res - mi.Float(c // res))
+
+
+def _take(array, index):
+    """``array[index]``: a gather in JIT variants, an element in scalar ones."""
+    if dr.is_jit_v(mi.Float):
+        return dr.gather(type(array), array, index)
+    return array[int(index)].item()
+
+
+# ----------------------------- Learning -----------------------------------
+# Where: a voxel of a GRID³ grid over the scene's bounds. The learned tree
+# splits voxels' blocks; flattened into a voxel → leaf table for sampling, a
+# vertex finds its leaf with one lookup.
+
+GRID = 64
+
+
+def grid_of(bbox) -> tuple:
+    """(lower corner, voxels per unit length) of the grid over ``bbox``."""
+    lo, hi = np.array(bbox.min, float), np.array(bbox.max, float)
+    pad = 1e-3 * max(float(np.max(hi - lo)), 1e-6)
+    lo, hi = lo - pad, hi + pad
+    return lo, GRID / np.maximum(hi - lo, 1e-9)
+
+
+def voxel_of(p: mi.Point3f, grid) -> mi.UInt32:
+    """Voxel index of ``p`` (x fastest)."""
+    lo, scale = grid
+    i = [dr.minimum(mi.UInt32(dr.maximum((p[k] - float(lo[k])) * float(scale[k]), 0)),
+                    GRID - 1) for k in range(3)]
+    return i[0] + GRID * (i[1] + GRID * i[2])
+
+
+TRAIN_DEPTH = 8            # vertices of a training path that are recorded
+PASSES = 2                 # training passes at most (each traces the kernel again)
+MAX_LEARN = 1 << 19        # records a guide is learned from at most
+MAX_RECORDS = 1 << 22      # records per training render (longer passes split)
+FLOOR = 0.1                # uniform share of every learned pmf
+MAX_TREE_DEPTH = 3 * 6    # (a leaf of one voxel: GRID = 2^6)
+
+
+def training_passes(spp: int, fraction: float) -> list[int]:
+    """spp of the training passes: ``fraction`` of ``spp`` (leaving at least
+    one sample for the image) in at most PASSES passes that double, the
+    first at least 1 spp: every pass costs a trace of the whole kernel."""
+    budget = max(int(min(fraction * spp, spp - 1)), 0)
+    k = min(PASSES, (budget + 1).bit_length() - 1)   # 2^k - 1 ≤ budget
+    if k == 0:
+        return []
+    unit = budget // (2 ** k - 1)
+    out = [unit * 2 ** i for i in range(k)]
+    out[-1] += budget - sum(out)
+    return out
+
+
+def pass_seed(seed: int, i: int) -> int:
+    """Seed of training render ``i`` of the render with ``seed``: hashed, so
+    that no other render's seed gives the same samples."""
+    digest = hashlib.blake2s(f"guided_path {int(seed)} {i}".encode(), digest_size=4)
+    return int.from_bytes(digest.digest(), "little")
+
+
+class Guide:
+    """A binary tree over the scene's bounds, each node split at the middle
+    of its longest side while it holds more than ``threshold`` records, with
+    a learned pmf over the square's cells in every node; numpy arrays
+    (children of a node consecutive), and the same on the device for
+    sampling (:meth:`device`)."""
+
+    def __init__(self, res: int):
+        self.res = res
+        self.axis = np.zeros(1, np.uint32)
+        self.split = np.zeros(1, np.float32)
+        self.child = np.zeros(1, np.uint32)      # first child; 0: a leaf
+        self.pmf = np.full((1, res * res), 1.0 / (res * res))
+        self.trained = np.zeros(1, bool)
+
+    @property
+    def leaves(self) -> int:
+        return int(np.sum(self.child == 0))
+
+    @property
+    def trained_leaves(self) -> int:
+        return int(np.sum(self.trained & (self.child == 0)))
+
+    @classmethod
+    def learn(cls, res: int, voxel, cell, li, threshold: int) -> Guide:
+        """The tree and pmfs of the records (their voxel, their direction's
+        cell of the square, the incident radiance ``li``), built breadth
+        first over the grid (in voxel units). A node with fewer than two
+        records per cell keeps its parent's pmf (uniform at the root: cosine
+        sampling, not trained).
+
+        A cell's weight is the mean L_i of the records in it (cells no
+        record fell in get the node's mean): every cell spans the same
+        cosine-weighted solid angle, so this is the cell's share of
+        ∫ L_i cos θ, up to its within-cell variation, and far less noisy
+        than splatting L_i/p, which one rare record of small p dominates.
+        The image is unbiased whatever is learned."""
+        g = cls(res)
+        nb = res * res
+        p = _voxel_centres(voxel)
+        axis, split, child, pmf, trained = [0], [0.0], [0], [g.pmf[0]], [False]
+        queue = [(0, np.arange(len(li)), np.zeros(3), np.full(3, float(GRID)), 0)]
+        while queue:
+            node, idx, lo, hi, depth = queue.pop(0)
+            own = _cell_pmf(cell[idx], li[idx], nb) if len(idx) >= 2 * nb else None
+            if own is not None:
+                pmf[node], trained[node] = own, True
+            if len(idx) <= threshold or depth >= MAX_TREE_DEPTH or np.max(hi - lo) <= 1:
+                continue
+            a = int(np.argmax(hi - lo))
+            mid = 0.5 * (lo[a] + hi[a])
+            first = len(child)
+            axis[node], split[node], child[node] = a, mid, first
+            upper = p[idx, a] >= mid
+            hi1, lo2 = hi.copy(), lo.copy()
+            hi1[a] = lo2[a] = mid
+            for k, (part, l, h) in enumerate(((idx[~upper], lo, hi1), (idx[upper], lo2, hi))):
+                axis.append(0), split.append(0.0), child.append(0)
+                pmf.append(pmf[node]), trained.append(trained[node])
+                queue.append((first + k, part, l, h, depth + 1))
+        g.axis, g.split = np.array(axis, np.uint32), np.array(split, np.float32)
+        g.child, g.pmf, g.trained = np.array(child, np.uint32), np.array(pmf), np.array(trained)
+        return g
+
+    def locate(self, p: np.ndarray) -> np.ndarray:
+        """Leaf of every point of ``p`` (n, 3; voxel units)."""
+        node = np.zeros(len(p), np.int64)
+        while True:
+            inner = self.child[node] != 0
+            if not inner.any():
+                return node
+            x = p[np.arange(len(p)), self.axis[node]]
+            node = np.where(inner, self.child[node] + (x >= self.split[node]), node)
+
+    def device(self, bsdf_fraction: float) -> dict:
+        """The arrays :meth:`GuidedPathIntegrator.sample` reads, as the
+        variant's types (numpy in scalar variants)."""
+        pmf = self.pmf.astype(np.float32)
+        cdf = np.cumsum(pmf, axis=1)
+        cdf /= cdf[:, -1:]
+        alpha = np.where(self.trained, bsdf_fraction, 1.0).astype(np.float32)
+        leaf = self.locate(_voxel_centres(np.arange(GRID ** 3))).astype(np.uint32)
+        arrays = {"leaf": leaf, "pmf": pmf.ravel(), "cdf": cdf.ravel(), "alpha": alpha}
+        if not dr.is_jit_v(mi.Float):
+            return arrays
+        return {k: (mi.UInt32 if v.dtype == np.uint32 else mi.Float)(v)
+                for k, v in arrays.items()}
+
+
+def _voxel_centres(voxel: np.ndarray) -> np.ndarray:
+    """Centres of voxels (n, 3), in voxel units."""
+    v = np.asarray(voxel, np.int64)
+    return np.stack([v % GRID, (v // GRID) % GRID, v // (GRID * GRID)], axis=1) + 0.5
+
+
+def _subset(voxel, cell, li):
+    """At most MAX_LEARN of the records, a fixed random choice: learning
+    time grows with the records, and the tree's depth only with their log."""
+    if len(li) <= MAX_LEARN:
+        return voxel, cell, li
+    keep = np.random.default_rng(len(li)).choice(len(li), MAX_LEARN, replace=False)
+    return voxel[keep], cell[keep], li[keep]
+
+
+def _cell_pmf(cells, li, nb: int):
+    """The pmf of one node (see :meth:`Guide.learn`), None where its records
+    carry no light."""
+    total = np.bincount(cells, weights=li, minlength=nb)
+    hits = np.bincount(cells, minlength=nb)
+    if total.sum() <= 0:
+        return None
+    weight = np.where(hits > 0, total / np.maximum(hits, 1), total.sum() / hits.sum())
+    return (1 - FLOOR) * weight / weight.sum() + FLOOR / nb
+
+
+class Records:
+    """What the training paths of one render leave: per vertex its voxel,
+    its direction's cell of the guide's square, the throughput after it and
+    the radiance gathered before it; per path its radiance (radiance and
+    throughput as their mean over the channels: only learning reads them).
+    Device buffers in JIT variants, lists in scalar ones."""
+
+    def __init__(self, lanes: int, depth: int):
+        self.lanes, self.depth = lanes, depth
+        if dr.is_jit_v(mi.Float):
+            n = lanes * depth
+            self.voxel = dr.zeros(mi.UInt32, n)         # voxel + 1; 0: none
+            self.cell = dr.zeros(mi.UInt32, n)
+            self.beta, self.L = dr.zeros(mi.Float, n), dr.zeros(mi.Float, n)
+            self.path = dr.zeros(mi.Float, lanes)
+        else:
+            self.rows, self.path_L, self.lanes_taken = [], {}, itertools.count()
+
+    def learned(self):
+        """(voxel, cell, L_i) as numpy, one row per vertex whose path went
+        on (β > 0: where f = 0 the path died and L_i is unknown). L_i is the
+        radiance the path gathered after the vertex over the throughput
+        after it (which includes f cos/p)."""
+        if not dr.is_jit_v(mi.Float):
+            if not self.rows:
+                return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+            lane, voxel, cell, beta, L = (np.array(c) for c in zip(*self.rows))
+            path = np.array([self.path_L[int(x)] for x in lane])
+            with np.errstate(divide="ignore", invalid="ignore"):
+                li = np.maximum(path - L, 0) / beta
+            alive = (beta > 0) & np.isfinite(li)
+            return voxel[alive].astype(np.int64), cell[alive].astype(np.int64), li[alive]
+        # (on the device: only the rows kept cross to the host)
+        i = dr.compress(self.voxel > 0)
+        if dr.width(i) == 0:                  # (e.g. only delta lobes were hit)
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+        beta = dr.gather(mi.Float, self.beta, i)
+        li = dr.maximum(dr.gather(mi.Float, self.path, i // self.depth)
+                        - dr.gather(mi.Float, self.L, i), 0) / beta
+        i = dr.gather(mi.UInt32, i, dr.compress((beta > 0) & dr.isfinite(li)))
+        li = dr.gather(mi.Float, li, dr.compress((beta > 0) & dr.isfinite(li)))
+        return (np.array(dr.gather(mi.UInt32, self.voxel, i)).astype(np.int64) - 1,
+                np.array(dr.gather(mi.UInt32, self.cell, i)).astype(np.int64), np.array(li))
+
+
+# ------------------------------ Plugin ----------------------------------
+
+
+class GuidedPathIntegrator(IlluminationEstimator):
+    r"""
+    .. _integrator-guided_path:
+
+    Guided path tracer (:monosp:`guided_path`)
+    ------------------------------------------
+
+    .. pluginparameters::
+
+     * - max_depth
+       - |int|
+       - Longest path depth (-1: unbounded; 1: emitters seen directly; 2: direct
+         illumination). (Default: -1)
+     * - rr_depth
+       - |int|
+       - Depth at which Russian roulette starts, as in ``path``. (Default: 5)
+     * - hide_emitters
+       - |bool|
+       - Hide directly visible emitters. (Default: |false|)
+     * - allow_unreachable
+       - |bool|
+       - Render content this strategy cannot reach instead of refusing the
+         scene; the image is then biased and a warning says so. (Default: |false|)
+     * - bsdf_fraction
+       - |float|
+       - Probability of drawing the continuation from the BSDF rather than
+         the learned distribution, where one was learned (in (0, 1]; 1 is
+         ``mis``). (Default: 0.5)
+     * - train_fraction
+       - |float|
+       - Share of each render's samples per pixel spent learning, in passes
+         of 1, 2, 4, … spp (in [0, 1)). (Default: 0.25)
+     * - spatial_threshold
+       - |int|
+       - A cell of the spatial tree splits while more than this many path
+         vertices of a training pass fell in it. (Default: 4000)
+     * - directional_res
+       - |int|
+       - Bins of cos θ and of φ of each cell's distribution (a power of 2;
+         res² equal-area bins). (Default: 8)
+
+    Next-event estimation and the power heuristic as ``mis``; the path
+    continues along a direction drawn, with probability ``bsdf_fraction``,
+    from the BSDF, else from the distribution learned in the spatial cell
+    of the vertex, and is weighted by f cos / p with p the mixture's density,
+    so the image is unbiased whatever was learned: the BSDF's share keeps p
+    positive wherever f is. Vertices with a delta lobe, and cells where
+    nothing was learned, use the BSDF alone.
+
+    **Learning.** Each call of ``render`` learns afresh: training passes of
+    1, 2, 4, … spp (``train_fraction`` of the samples) record every path
+    vertex's incident radiance along its continuation (the radiance the
+    path gathered after it, over the throughput) and splat L_i/p into the
+    equal-area bin of its direction in its leaf of a binary tree over the
+    scene's bounds; each pass samples from what the one before learned, and
+    then the leaves that received more than ``spatial_threshold`` vertices
+    split. The training passes' images are discarded: the image is the
+    last render, with the remaining samples and the last distribution, so
+    it is unbiased; its wall time includes the learning. Nested in another
+    integrator (``moment``, which calls ``sample`` only) nothing is learned
+    and it renders as ``mis``.
+
+    .. tabs::
+
+        .. code-tab:: xml
+
+            <integrator type="guided_path">
+                <integer name="max_depth" value="8"/>
+                <float name="train_fraction" value="0.25"/>
+            </integrator>
+    """
+
+    plugin_name = "guided_path"
+    display_name = "path guiding (learned pdf)"
+    colour = "#e377c2"
+    reachable = frozenset({"delta_bsdf", "transmission", "delta_emitter"})
+    max_direction_pdf = None                   # emitter samples find any source
+    listing_order = 55
+    use_nee = True
+    use_mis = True
+    records_paths = False                      # (True during training passes)
+    sample_emitter = staticmethod(sample_emitter_direction)
+    emitter_pdf = staticmethod(emitter_direction_pdf)
+
+    def __init__(self, props: mi.Properties):
+        super().__init__(props)
+        self.bsdf_fraction = float(props.get("bsdf_fraction", 0.5))
+        self.train_fraction = float(props.get("train_fraction", 0.25))
+        self.spatial_threshold = int(props.get("spatial_threshold", 4000))
+        self.directional_res = int(props.get("directional_res", 8))
+        if not 0 < self.bsdf_fraction <= 1:
+            raise ValueError(f"bsdf_fraction = {self.bsdf_fraction} is invalid: it must lie "
+                             "in (0, 1] (the BSDF's share keeps the mixture unbiased)")
+        if not 0 <= self.train_fraction < 1:
+            raise ValueError(f"train_fraction = {self.train_fraction} is invalid: use a "
+                             "share of the samples in [0, 1) (0: no learning, as mis)")
+        if self.spatial_threshold < 1:
+            raise ValueError(f"spatial_threshold = {self.spatial_threshold} is invalid: "
+                             "use a record count >= 1")
+        res = self.directional_res
+        if res < 2 or res & (res - 1):
+            raise ValueError(f"directional_res = {res} is invalid: use a power of 2 "
+                             "(the bins are found by bisection), e.g. 16")
+        self._guide = None                  # device arrays of the current guide
+        self._records = None
+        #: The last render's learning: per training pass (spp, leaves, trained
+        #: leaves) -- what the validation report's learning curve reads.
+        self.training: list[dict] = []
+
+    # ---------------------------- Render ---------------------------------
+
+    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        if getattr(self, "_in_pass", False):
+            return super().render(scene, sensor, seed, spp, develop, evaluate)
+        sensor_ = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
+        spp = spp or sensor_.sampler().sample_count()
+        self.check_scene(scene)
+        self._guide, self.training = None, []
+        self._grid = grid_of(scene.bbox())
+        pixels = int(dr.prod(sensor_.film().crop_size()))
+        depth = int(min(self.max_depth, TRAIN_DEPTH))
+        records = []                        # (p, u, L_i) of every pass so far
+        try:
+            for i, n in enumerate(training_passes(spp, self.train_fraction)):
+                records.append(self._train(scene, sensor, pass_seed(seed, i), n, pixels, depth))
+                voxel, cell, li = _subset(*(np.concatenate(c) for c in zip(*records)))
+                guide = Guide.learn(self.directional_res, voxel, cell, li,
+                                    self.spatial_threshold)
+                self.training.append({"spp": n, "records": len(li), "leaves": guide.leaves,
+                                      "trained_leaves": guide.trained_leaves})
+                self._guide = guide.device(self.bsdf_fraction)
+            return super().render(scene, sensor, seed,
+                                  spp - sum(t["spp"] for t in self.training), develop, evaluate)
+        finally:
+            # (a wrapper calling sample() alone later renders as mis, not
+            # with this scene's guide)
+            self._records, self.records_paths, self._guide = None, False, None
+
+    def _train(self, scene, sensor, seed, spp, pixels, depth):
+        """One training pass of ``spp`` (in pieces of at most MAX_RECORDS
+        vertices), sampling with the guide learned so far: (voxel, cell, L_i) of its
+        vertices (:meth:`Records.learned`). Every record estimates L_i
+        whatever density drew it, so the passes' records are pooled."""
+        pieces = max(1, -(-pixels * spp * depth // MAX_RECORDS))
+        per = [spp // pieces + (k < spp % pieces) for k in range(pieces)]
+        rows = []
+        for k, n in enumerate(p for p in per if p):
+            self._records, self.records_paths = Records(pixels * n, depth), True
+            super().render(scene, sensor, pass_seed(seed, 1000 + k), n, True, True)
+            rows.append(self._records.learned())
+        self.records_paths = False
+        return tuple(np.concatenate(c) for c in zip(*rows))
+
+    # ------------------------- Training records ---------------------------
+
+    def path_index(self, ray):
+        if dr.is_jit_v(mi.Float):
+            return dr.arange(mi.UInt32, dr.width(ray))
+        return next(self._records.lanes_taken)   # (scalar: one path per call)
+
+    def record_vertex(self, lane, depth, si, wo_world, pdf, delta, β, L, active):
+        rec = self._records
+        # the direction's cell in the guide frame; one to the other side is not learned
+        frame, side = guide_frame(si)
+        w = frame.to_local(wo_world)
+        cell = square_cell(mi.warp.cosine_hemisphere_to_square(
+            mi.Vector3f(w.x, w.y, w.z * side)), self.directional_res)
+        voxel = voxel_of(si.p, self._grid)
+        # (no `~` on masks: in scalar variants they are Python bools)
+        keep = dr.select(delta, False, active & (depth < rec.depth) & (pdf > 0)
+                         & (w.z * side > 0))
+        if not dr.is_jit_v(mi.Float):
+            if keep:
+                rec.rows.append((lane, voxel, cell, dr.mean(β), dr.mean(L)))
+            return
+        i = lane * rec.depth + depth
+        dr.scatter(rec.voxel, voxel + 1, i, keep)
+        dr.scatter(rec.cell, cell, i, keep)
+        dr.scatter(rec.beta, dr.mean(β), i, keep)
+        dr.scatter(rec.L, dr.mean(L), i, keep)
+
+    def record_path(self, lane, L):
+        rec = self._records
+        if not dr.is_jit_v(mi.Float):
+            rec.path_L[lane] = dr.mean(L)
+            return
+        dr.scatter(rec.path, dr.mean(L), lane)
+
+    # ------------------------- Sample the next direction -------------------
+
+    def mixture(self, si, bsdf):
+        """(the BSDF's share α at this vertex, the leaf's first bin): α = 1
+        for a BSDF with a delta lobe and where nothing was learned."""
+        node = _take(self._guide["leaf"], voxel_of(si.p, self._grid))
+        alpha = _take(self._guide["alpha"], node)
+        alpha = dr.select(mi.has_flag(bsdf.flags(), mi.BSDFFlags.Delta), 1.0, alpha)
+        return alpha, node * (self.directional_res ** 2)
+
+    def sample_direction(self, scene, sampler, si, bsdf, ctx):
+        u_pick, u1, u2 = sampler.next_1d(), sampler.next_1d(), sampler.next_2d()
+        if self._guide is None:
+            return sample_bsdf_direction(bsdf, ctx, si, u1, u2)
+        g, res = self._guide, self.directional_res
+        alpha, base = self.mixture(si, bsdf)
+        from_bsdf = u_pick < alpha
+
+        # Either technique's direction (both drawn: the lanes pick one)
+        wo_b, w_b, pdf_b, delta_b, eta_b = sample_bsdf_direction(bsdf, ctx, si, u1, u2)
+        frame, side = guide_frame(si)
+        wg, _ = sample_guide(g["cdf"], base, res, u1, u2)
+        wg_world = frame.to_world(mi.Vector3f(wg.x, wg.y, wg.z * side))
+        wo = dr.select(from_bsdf, wo_b, si.to_local(wg_world))
+
+        # p = α p_bsdf + (1 - α) p_guide;  weight = f cos / p
+        f_cos, p_bsdf = bsdf.eval_pdf(ctx, si, wo)
+        p = alpha * p_bsdf + (1 - alpha) * self.guide_density(si, base, si.to_world(wo))
+        # (α = 1 is BSDF sampling as it is, delta lobes included)
+        plain = alpha >= 1
+        weight = dr.select(plain, w_b, dr.select(p > 0, f_cos / dr.select(p > 0, p, 1.0), 0))
+        pdf = dr.select(plain, pdf_b, p)
+        delta = plain & delta_b
+        eta = dr.select(from_bsdf, eta_b, 1.0)
+        return wo, weight, pdf, delta, eta
+
+    def continuation_pdf(self, si, bsdf, wo_world, bsdf_pdf):
+        if self._guide is None:
+            return bsdf_pdf
+        alpha, base = self.mixture(si, bsdf)
+        return alpha * bsdf_pdf + (1 - alpha) * self.guide_density(si, base, wo_world)
+
+    def guide_density(self, si, base, wo_world):
+        """The learned density at world direction ``wo_world`` (0 on the side
+        the path did not arrive from)."""
+        frame, side = guide_frame(si)
+        w = frame.to_local(wo_world)
+        return guide_pdf(self._guide["pmf"], base, self.directional_res,
+                         mi.Vector3f(w.x, w.y, w.z * side))
+
+    def to_string(self) -> str:
+        return (super().to_string()[:-1] + f", bsdf_fraction={self.bsdf_fraction}, "
+                f"train_fraction={self.train_fraction}]")
+
+
+registry.register(GuidedPathIntegrator)

@@ -1,0 +1,172 @@
+"""guided_path: its learned density matches its samples, learning finds the
+light a scene hides, the image stays unbiased whatever was learned, and a
+wrong learned pdf in the weight is caught. (Its agreement with `path` on the
+bundled scenes and its BSDF- and emitter-weight twins run with every other
+estimator's: test_agreement.py, test_analytic.py, test_plugins.py, ….)"""
+
+from __future__ import annotations
+
+import textwrap
+
+import numpy as np
+import pytest
+
+import drjit as dr
+import mitsuba as mi
+
+from mcillum.testing import assert_unbiased, compare
+from mcillum.validation.run import renders
+
+from conftest import SCENES
+
+ROOM = str(SCENES / "sunlit_room.xml")
+
+
+def gp():
+    """The plugin module, bound to the current variant."""
+    from mcillum.integrators import guided_path
+    return guided_path
+
+
+def random_guide(res, rows=3, seed=1):
+    rng = np.random.default_rng(seed)
+    pmf = rng.random((rows, res * res)) + 0.25
+    pmf /= pmf.sum(axis=1, keepdims=True)
+    cdf = np.cumsum(pmf, axis=1)
+    cdf /= cdf[:, -1:]
+    return mi.Float(pmf.ravel()), mi.Float(cdf.ravel())
+
+
+# ------------------------- Sampling the learned part -------------------------
+
+@pytest.mark.parametrize("factor", [1.0, 1.05])
+def test_chi2_on_a_learned_density(llvm, factor, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)          # mi.chi2 writes chi2_data.py on rejection
+    m, res = gp(), 8
+    pmf, cdf = random_guide(res)
+    base = mi.UInt32(res * res)          # the second row
+
+    def sample(u):
+        w, _ = m.sample_guide(cdf, base, res, u.x, mi.Point2f(u.y, u.z))
+        return w
+
+    def pdf(w):
+        return factor * m.guide_pdf(pmf, base, res, w)
+
+    test = mi.chi2.ChiSquareTest(domain=mi.chi2.SphericalDomain(), sample_func=sample,
+                                 pdf_func=pdf, sample_dim=3, sample_count=1_000_000,
+                                 res=101, ires=16)
+    # (ires 16: the density jumps at the cells' curved edges, and 4 points per
+    # χ² cell integrate it too roughly: a correct density was rejected)
+    assert test.run(0.01) == (factor == 1.0), test.messages
+
+
+def test_inverse_undoes_sampling_and_the_pdf_integrates_to_one(llvm):
+    m, res = gp(), 8
+    pmf, cdf = random_guide(res)
+    base = mi.UInt32(0)
+    rng = mi.PCG32(size=100_000)
+    u1, u2 = rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32())
+    w, cell = m.sample_guide(cdf, base, res, u1, u2)
+    v1, v2 = m.invert_guide(cdf, pmf, base, res, w)
+    w2, cell2 = m.sample_guide(cdf, base, res, v1, v2)
+    assert np.array_equal(np.array(cell), np.array(cell2))
+    assert np.max(np.abs(np.array(w) - np.array(w2))) < 1e-3
+    # (uniform directions on the sphere: E[p] · 4π = ∫ p)
+    wu = mi.warp.square_to_uniform_sphere(u2)
+    assert abs(float(dr.mean(m.guide_pdf(pmf, base, res, wu))[0]) * 4 * np.pi - 1) < 0.02
+
+
+def test_training_passes_double_and_stay_within_their_share(llvm):
+    m = gp()
+    assert m.training_passes(3, 0.25) == [] and m.training_passes(16, 0.0) == []
+    for spp in (4, 16, 64, 100, 1000):
+        passes = m.training_passes(spp, 0.25)
+        assert 1 <= len(passes) <= m.PASSES and min(passes) >= 1
+        assert sum(passes) == int(0.25 * spp)
+        assert all(b >= 2 * a for a, b in zip(passes, passes[1:]))
+
+
+@pytest.mark.parametrize("params, message", [
+    ({"bsdf_fraction": 0.0}, "bsdf_fraction"), ({"train_fraction": 1.0}, "train_fraction"),
+    ({"directional_res": 12}, "power of 2"), ({"spatial_threshold": 0}, "spatial_threshold")])
+def test_bad_parameters_are_refused(llvm, params, message):
+    with pytest.raises(Exception, match=message):
+        mi.load_dict({"type": "guided_path", **params})
+
+
+# ------------------------------- Learning -----------------------------------
+
+def pixel_variance(scene, integrator, spp, seeds=12):
+    images = np.stack([renders.render(scene, integrator, spp, seed=s).image[..., :3]
+                       for s in range(seeds)])
+    return float(np.mean(images.var(axis=0, ddof=1))), float(images.mean())
+
+
+def test_what_it_learns_lowers_the_variance_where_light_comes_indirectly(llvm):
+    """sunlit_room at 32², direct light and one indirect bounce: with the
+    guide learned from 480 spp, the 32 spp that render the image vary less
+    than `mis`'s 32 spp (0.77× here, docs/measurements.md); their means
+    agree."""
+    scene = renders.load_scene(ROOM, res=32)
+    mis = renders.make_integrator("mis", {"max_depth": 3})
+    guided = renders.make_integrator("guided_path", {"max_depth": 3, "train_fraction": 0.9375})
+    v_mis, mean_mis = pixel_variance(scene, mis, 32)
+    v_guided, mean_guided = pixel_variance(scene, guided, 512)
+    assert [t["spp"] for t in guided.training] == [160, 320]
+    assert guided.training[-1]["trained_leaves"] > 1
+    assert v_guided < 0.9 * v_mis, (v_guided, v_mis)
+    assert abs(mean_guided / mean_mis - 1) < 0.05
+
+
+def test_scalar_variant_learns_and_renders(use_variant):
+    use_variant("scalar_rgb")
+    scene = renders.load_scene(ROOM, res=6)
+    guided = renders.make_integrator("guided_path", {"max_depth": 3})
+    out = renders.render(scene, guided, 16, seed=1)
+    assert np.isfinite(out.image).all() and out.image.mean() > 0
+    assert [t["spp"] for t in guided.training] == gp().training_passes(16, 0.25)
+    assert guided.training[-1]["records"] > 0
+
+
+def test_nested_in_moment_it_renders_as_mis(llvm):
+    scene = renders.load_scene(ROOM, res=8)
+    moment = mi.load_dict({"type": "moment", "nested": {"type": "guided_path"}})
+    image = np.array(mi.render(scene, integrator=moment, spp=16, seed=0))
+    assert np.isfinite(image).all() and image[..., :3].mean() > 0
+
+
+# --------------------- The suite's verdict, right and wrong -------------------
+
+TWIN = textwrap.dedent('''
+    import mcillum
+    import mitsuba as mi
+
+    cls = type(mi.load_dict({"type": "guided_path"}))
+
+    class LearnedPdfHigh(cls):
+        """The learned density 25 % high in the weight and the MIS weights;
+        its samples drawn as they should be."""
+        plugin_name = "guided_path_pdf_high"
+
+        def guide_density(self, si, base, wo_world):
+            return 1.25 * super().guide_density(si, base, wo_world)
+
+    mi.register_integrator("guided_path_pdf_high", lambda props: LearnedPdfHigh(props))
+''')
+
+
+@pytest.mark.slow
+def test_the_suite_passes_it_and_fails_a_wrong_learned_pdf(llvm, tmp_path):
+    """On the scene made for it (24², the user-scene ladder up to 256 spp,
+    where every render learns), guided_path passes every unbiasedness check
+    and its twin with the learned pdf 25 % high in the weight fails."""
+    right = compare(ROOM, "guided_path", out_dir=tmp_path / "right",
+                    cache_dir=tmp_path / "cache")
+    assert_unbiased(right)
+    plugin = tmp_path / "twin.py"
+    plugin.write_text(TWIN)
+    wrong = compare(ROOM, "guided_path_pdf_high", plugins=[plugin], out_dir=tmp_path / "wrong",
+                    cache_dir=tmp_path / "cache")
+    with pytest.raises(AssertionError, match="fail"):
+        assert_unbiased(wrong)
