@@ -319,6 +319,8 @@ class IlluminationEstimator(mi.SamplingIntegrator):
             if emitter != None:
                 w_hit = self.hit_weight(scene, si, prev_si, prev_pdf, prev_delta)
                 L += β * w_hit * emitter.eval(si, visible)
+            if dr.hint(self.records_paths, mode='scalar'):
+                self.record_emission(lane, depth, L, active)
 
             valid_ray |= active & si.is_valid()
 
@@ -421,6 +423,11 @@ class IlluminationEstimator(mi.SamplingIntegrator):
     def record_vertex(self, lane, depth, si, wo_world, pdf, delta, β, L, active):
         """A vertex that continued along ``wo_world`` (density ``pdf``), with
         the throughput β after it and the radiance L gathered before it."""
+        raise NotImplementedError
+
+    def record_emission(self, lane, depth, L, active):
+        """The radiance gathered once the emission the last continuation hit
+        is added (vertex ``depth`` - 1's direct light by that route)."""
         raise NotImplementedError
 
     def record_path(self, lane, L):

@@ -87,7 +87,7 @@ def _take(array, index):
 # splits voxels' blocks; flattened into a voxel → leaf table for sampling, a
 # vertex finds its leaf with one lookup.
 
-GRID = 64
+GRID = 32
 
 
 def grid_of(bbox) -> tuple:
@@ -111,7 +111,7 @@ PASSES = 2                 # training passes at most (each traces the kernel aga
 MAX_LEARN = 1 << 19        # records a guide is learned from at most
 MAX_RECORDS = 1 << 22      # records per training render (longer passes split)
 FLOOR = 0.1                # uniform share of every learned pmf
-MAX_TREE_DEPTH = 3 * 6    # (a leaf of one voxel: GRID = 2^6)
+MAX_TREE_DEPTH = 3 * 5    # (a leaf of one voxel: GRID = 2^5)
 
 
 def training_passes(spp: int, fraction: float) -> list[int]:
@@ -266,17 +266,19 @@ class Records:
             self.beta, self.L = dr.zeros(mi.Float, n), dr.zeros(mi.Float, n)
             self.path = dr.zeros(mi.Float, lanes)
         else:
-            self.rows, self.path_L, self.lanes_taken = [], {}, itertools.count()
+            self.rows, self.path_L, self.lanes_taken = {}, {}, itertools.count()
 
     def learned(self):
         """(voxel, cell, L_i) as numpy, one row per vertex whose path went
         on (β > 0: where f = 0 the path died and L_i is unknown). L_i is the
-        radiance the path gathered after the vertex over the throughput
-        after it (which includes f cos/p)."""
+        radiance the path gathered after the vertex, less the emission its
+        continuation hit directly, over the throughput after it (which
+        includes f cos/p): the light that arrives indirectly."""
         if not dr.is_jit_v(mi.Float):
             if not self.rows:
                 return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
-            lane, voxel, cell, beta, L = (np.array(c) for c in zip(*self.rows))
+            lane = np.array([k[0] for k in self.rows])
+            voxel, cell, beta, L = (np.array(c) for c in zip(*self.rows.values()))
             path = np.array([self.path_L[int(x)] for x in lane])
             with np.errstate(divide="ignore", invalid="ignore"):
                 li = np.maximum(path - L, 0) / beta
@@ -428,6 +430,8 @@ class GuidedPathIntegrator(IlluminationEstimator):
                                     self.spatial_threshold)
                 self.training.append({"spp": n, "records": len(li), "leaves": guide.leaves,
                                       "trained_leaves": guide.trained_leaves})
+                if not guide.trained_leaves:
+                    break           # (nothing arrives indirectly: the rest renders as mis)
                 self._guide = guide.device(self.bsdf_fraction)
             return super().render(scene, sensor, seed,
                                   spp - sum(t["spp"] for t in self.training), develop, evaluate)
@@ -471,13 +475,27 @@ class GuidedPathIntegrator(IlluminationEstimator):
                          & (w.z * side > 0))
         if not dr.is_jit_v(mi.Float):
             if keep:
-                rec.rows.append((lane, voxel, cell, dr.mean(β), dr.mean(L)))
+                rec.rows[(lane, depth)] = [voxel, cell, dr.mean(β), dr.mean(L)]
             return
         i = lane * rec.depth + depth
         dr.scatter(rec.voxel, voxel + 1, i, keep)
         dr.scatter(rec.cell, cell, i, keep)
         dr.scatter(rec.beta, dr.mean(β), i, keep)
         dr.scatter(rec.L, dr.mean(L), i, keep)
+
+    def record_emission(self, lane, depth, L, active):
+        # Emission the continuation hit is direct light, which next-event
+        # estimation samples already (exactly, under an importance-sampled
+        # map): L_i learned is what arrives indirectly, so that q does not
+        # take the emitter sample's MIS weight where it samples best.
+        rec = self._records
+        if not dr.is_jit_v(mi.Float):
+            row = rec.rows.get((lane, depth - 1)) if depth >= 1 else None
+            if active and row is not None:
+                row[3] = dr.mean(L)
+            return
+        dr.scatter(rec.L, dr.mean(L), lane * rec.depth + depth - 1,
+                   active & (depth >= 1) & (depth <= rec.depth))
 
     def record_path(self, lane, L):
         rec = self._records

@@ -121,12 +121,23 @@ def test_what_it_learns_lowers_the_variance_where_light_comes_indirectly(llvm):
 
 def test_scalar_variant_learns_and_renders(use_variant):
     use_variant("scalar_rgb")
-    scene = renders.load_scene(ROOM, res=6)
+    scene = renders.load_scene(ROOM, res=10)
     guided = renders.make_integrator("guided_path", {"max_depth": 3})
-    out = renders.render(scene, guided, 16, seed=1)
+    out = renders.render(scene, guided, 32, seed=1)
     assert np.isfinite(out.image).all() and out.image.mean() > 0
-    assert [t["spp"] for t in guided.training] == gp().training_passes(16, 0.25)
-    assert guided.training[-1]["records"] > 0
+    assert [t["spp"] for t in guided.training] == gp().training_passes(32, 0.25)
+    assert guided.training[0]["records"] > 0 and guided.training[-1]["trained_leaves"] > 0
+
+
+def test_where_nothing_arrives_indirectly_it_stops_learning(llvm):
+    """Direct light only (max_depth 2): the emission a continuation hits is
+    not learned (next-event estimation has it), so the first pass learns
+    nothing and the rest of the samples render the image, as mis."""
+    scene = renders.load_scene(str(SCENES / "cap_plane.xml"), res=16)
+    guided = renders.make_integrator("guided_path", {"max_depth": 2})
+    renders.render(scene, guided, 64, seed=0)
+    assert len(guided.training) == 1 and guided.training[0]["records"] > 0
+    assert guided.training[0]["trained_leaves"] == 0
 
 
 def test_nested_in_moment_it_renders_as_mis(llvm):
