@@ -18,15 +18,14 @@ import numpy as np
 import pytest
 
 from mcillum import files
+from mcillum.integrators import registry
 from mcillum.validation import cli
 
 from conftest import ROOT, SCENES
 
 CORNELL = str(SCENES / "cornell_box.xml")
 CAP = str(SCENES / "cap_plane.xml")
-MCILLUM_INTEGRATORS = ("mcillum's integrators are uniform_hemisphere, cosine_hemisphere, "
-                       "bsdf_sampling, emitter_sampling, mis, fibonacci_hemisphere, "
-                       "bayesian_hemisphere")
+MCILLUM_INTEGRATORS = "mcillum's integrators are " + ", ".join(registry.names())
 
 
 @pytest.fixture
@@ -227,6 +226,7 @@ def test_report(tmp, capsys, text, code, phrase):
 STALLED_WRITE = """
 import contextlib, os, sys, time
 from mcillum import files
+from mcillum.integrators import registry
 from mcillum.validation import cli
 
 suffix, marker = sys.argv[1], sys.argv[2]

@@ -25,7 +25,8 @@ import twins
 def test_every_estimator_declares_its_facts(llvm):
     names = registry.names()
     assert names == ["uniform_hemisphere", "cosine_hemisphere", "bsdf_sampling",
-                     "emitter_sampling", "mis", "fibonacci_hemisphere", "bayesian_hemisphere"]
+                     "emitter_sampling", "mis", "guided_path", "fibonacci_hemisphere",
+                     "bayesian_hemisphere"]
     colours = [registry.facts(n).colour for n in names] + [registry.PATH.colour]
     assert all(re.fullmatch(r"#[0-9a-f]{6}", c) for c in colours)
     assert len(set(colours)) == len(colours), "two estimators share a colour"
@@ -35,10 +36,10 @@ def test_every_estimator_declares_its_facts(llvm):
         assert set(f.reachable) <= set(KINDS) and "medium" in f.unreachable
     # the estimators of N directions: direct light only; the quadrature is
     # biased by design and refuses glossy lobes
-    assert [registry.facts(n).depths for n in names] == [None] * 5 + [(1, 2)] * 2
-    assert [registry.facts(n).unbiased for n in names] == [True] * 6 + [False]
+    assert [registry.facts(n).depths for n in names] == [None] * 6 + [(1, 2)] * 2
+    assert [registry.facts(n).unbiased for n in names] == [True] * 7 + [False]
     assert [("glossy_bsdf" in registry.facts(n).unreachable) for n in names] == \
-        [False] * 6 + [True]
+        [False] * 7 + [True]
 
 
 def test_largest_direction_pdfs_are_the_strategies_own(llvm):
@@ -47,7 +48,7 @@ def test_largest_direction_pdfs_are_the_strategies_own(llvm):
     assert registry.facts("uniform_hemisphere").max_direction_pdf == pytest.approx(
         1 / (2 * math.pi))
     assert registry.facts("cosine_hemisphere").max_direction_pdf == pytest.approx(1 / math.pi)
-    for n in ("bsdf_sampling", "emitter_sampling", "mis"):
+    for n in ("bsdf_sampling", "emitter_sampling", "mis", "guided_path"):
         assert registry.facts(n).max_direction_pdf is None
 
 
@@ -60,8 +61,8 @@ def test_scenes_are_rendered_by_exactly_the_estimators_that_reach_them(llvm):
         return [n for n in [*registry.names(), "path"]
                 if registry.facts(n).renders(index[scene].contains)]
 
-    assert rendering("point_light") == ["emitter_sampling", "mis", "path"]
-    assert rendering("smooth_glass") == ["bsdf_sampling", "mis", "path"]
+    assert rendering("point_light") == ["emitter_sampling", "mis", "guided_path", "path"]
+    assert rendering("smooth_glass") == ["bsdf_sampling", "mis", "guided_path", "path"]
     assert rendering("cornell_box") == [*registry.names(), "path"]
     assert rendering("probe_spheres") == [n for n in [*registry.names(), "path"]
                                           if n != "bayesian_hemisphere"]
