@@ -374,7 +374,7 @@ class GuidedPathIntegrator(IlluminationEstimator):
 
     plugin_name = "guided_path"
     display_name = "path guiding (learned pdf)"
-    colour = "#e377c2"
+    colour = "#637939"
     reachable = frozenset({"delta_bsdf", "transmission", "delta_emitter"})
     max_direction_pdf = None                   # emitter samples find any source
     listing_order = 55

@@ -210,9 +210,11 @@ def efficiency_summary(results: Results, colours: dict) -> str:
                  "(hatched //: a lower bound only; xx: biased by design)",
                  fontsize=9)
     ax.grid(True, axis="y", which="both", alpha=0.3)
-    # (plain swatches: a hatched first bar would hatch its estimator's key)
+    # (plain swatches: a hatched first bar would hatch its estimator's key;
+    # beside the axes: with eight estimators it hid the last scene's bars)
     ax.legend([line] + [matplotlib.patches.Patch(color=colours[n]) for n in names],
-              ["path = 1", *names], fontsize=7)
+              ["path = 1", *names], fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0),
+              borderaxespad=0.0)
     return _svg(fig)
 
 
