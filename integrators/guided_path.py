@@ -334,12 +334,13 @@ class GuidedPathIntegrator(IlluminationEstimator):
          of 1, 2, 4, … spp (in [0, 1)). (Default: 0.25)
      * - spatial_threshold
        - |int|
-       - A cell of the spatial tree splits while more than this many path
-         vertices of a training pass fell in it. (Default: 4000)
+       - A node of the spatial tree splits while more than this many of the
+         training vertices (all passes so far) fell in it. (Default: 4000)
      * - directional_res
        - |int|
-       - Bins of cos θ and of φ of each cell's distribution (a power of 2;
-         res² equal-area bins). (Default: 8)
+       - Cells per side of the unit square each leaf's pmf is over (a power
+         of 2), warped to the hemisphere by the cosine warp: res² cells of
+         equal cosine-weighted solid angle. (Default: 8)
 
     Next-event estimation and the power heuristic as ``mis``; the path
     continues along a direction drawn, with probability ``bsdf_fraction``,
@@ -349,16 +350,19 @@ class GuidedPathIntegrator(IlluminationEstimator):
     positive wherever f is. Vertices with a delta lobe, and cells where
     nothing was learned, use the BSDF alone.
 
-    **Learning.** Each call of ``render`` learns afresh: training passes of
-    1, 2, 4, … spp (``train_fraction`` of the samples) record every path
-    vertex's incident radiance along its continuation (the radiance the
-    path gathered after it, over the throughput) and splat L_i/p into the
-    equal-area bin of its direction in its leaf of a binary tree over the
-    scene's bounds; each pass samples from what the one before learned, and
-    then the leaves that received more than ``spatial_threshold`` vertices
-    split. The training passes' images are discarded: the image is the
-    last render, with the remaining samples and the last distribution, so
-    it is unbiased; its wall time includes the learning. Nested in another
+    **Learning.** Each call of ``render`` learns afresh, in at most two
+    training passes of doubling spp (``train_fraction`` of the samples), the
+    second drawn with what the first learned. Every path vertex records its
+    voxel (of a 32³ grid over the scene's bounds), its continuation's cell
+    and L_i along it: the radiance the path gathered after it, less the
+    emission the continuation hit (next-event estimation has that), over the
+    throughput. From the pooled records a binary tree splits the grid while
+    a node holds more than ``spatial_threshold`` of them; each leaf's pmf is
+    its cells' mean L_i, so the density is ∝ indirect L_i cos θ. Where
+    nothing arrives indirectly the first pass learns nothing and training
+    stops. The training passes' images are discarded: the image is the last
+    render, with the remaining samples and the last density, so it is
+    unbiased; its wall time includes the learning. Nested in another
     integrator (``moment``, which calls ``sample`` only) nothing is learned
     and it renders as ``mis``.
 
@@ -402,7 +406,7 @@ class GuidedPathIntegrator(IlluminationEstimator):
         res = self.directional_res
         if res < 2 or res & (res - 1):
             raise ValueError(f"directional_res = {res} is invalid: use a power of 2 "
-                             "(the bins are found by bisection), e.g. 16")
+                             "(the cells are found by bisection), e.g. 8")
         self._guide = None                  # device arrays of the current guide
         self._records = None
         #: The last render's learning: per training pass (spp, leaves, trained
