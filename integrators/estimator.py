@@ -150,8 +150,9 @@ class IlluminationEstimator(mi.SamplingIntegrator):
     #: (ds, L_e/p)`` and ``emitter_pdf(scene, ref, ds, active) -> p``.
     sample_emitter = None
     emitter_pdf = None
-    #: Call :meth:`record_vertex` and :meth:`record_path` in the loop? Only an
-    #: estimator that learns from its own paths (guided_path) does.
+    #: Call :meth:`record_vertex`, :meth:`record_emission` and
+    #: :meth:`record_path` in the loop? Only an estimator that learns from its
+    #: own paths (guided_path) does.
     records_paths = False
 
     def __init__(self, props: mi.Properties):

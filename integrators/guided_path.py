@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import hashlib
 import itertools
+from collections import deque
 
 import drjit as dr
 import mitsuba as mi
@@ -34,6 +35,20 @@ def guide_frame(si) -> tuple:
     in a cell shares it; side ±1 is the hemisphere of ``si.wi``."""
     n = si.sh_frame.n
     return mi.Frame3f(n), dr.select(si.wi.z >= 0, 1.0, -1.0)
+
+
+def to_guide(si, w_world: mi.Vector3f) -> mi.Vector3f:
+    """World direction → the guide's frame at ``si``, mirrored so that the
+    side the path arrived from is z > 0."""
+    frame, side = guide_frame(si)
+    w = frame.to_local(w_world)
+    return mi.Vector3f(w.x, w.y, w.z * side)
+
+
+def from_guide(si, w: mi.Vector3f) -> mi.Vector3f:
+    """The inverse of :func:`to_guide`."""
+    frame, side = guide_frame(si)
+    return frame.to_world(mi.Vector3f(w.x, w.y, w.z * side))
 
 
 def square_cell(u: mi.Point2f, res: int) -> mi.UInt32:
@@ -176,9 +191,9 @@ class Guide:
         nb = res * res
         p = _voxel_centres(voxel)
         axis, split, child, pmf, trained = [0], [0.0], [0], [g.pmf[0]], [False]
-        queue = [(0, np.arange(len(li)), np.zeros(3), np.full(3, float(GRID)), 0)]
+        queue = deque([(0, np.arange(len(li)), np.zeros(3), np.full(3, float(GRID)), 0)])
         while queue:
-            node, idx, lo, hi, depth = queue.pop(0)
+            node, idx, lo, hi, depth = queue.popleft()
             own = _cell_pmf(cell[idx], li[idx], nb) if len(idx) >= 2 * nb else None
             if own is not None:
                 pmf[node], trained[node] = own, True
@@ -191,10 +206,10 @@ class Guide:
             upper = p[idx, a] >= mid
             hi1, lo2 = hi.copy(), lo.copy()
             hi1[a] = lo2[a] = mid
-            for k, (part, l, h) in enumerate(((idx[~upper], lo, hi1), (idx[upper], lo2, hi))):
+            for k, (part, low, high) in enumerate(((idx[~upper], lo, hi1), (idx[upper], lo2, hi))):
                 axis.append(0), split.append(0.0), child.append(0)
                 pmf.append(pmf[node]), trained.append(trained[node])
-                queue.append((first + k, part, l, h, depth + 1))
+                queue.append((first + k, part, low, high, depth + 1))
         g.axis, g.split = np.array(axis, np.uint32), np.array(split, np.float32)
         g.child, g.pmf, g.trained = np.array(child, np.uint32), np.array(pmf), np.array(trained)
         return g
@@ -291,8 +306,8 @@ class Records:
         beta = dr.gather(mi.Float, self.beta, i)
         li = dr.maximum(dr.gather(mi.Float, self.path, i // self.depth)
                         - dr.gather(mi.Float, self.L, i), 0) / beta
-        i = dr.gather(mi.UInt32, i, dr.compress((beta > 0) & dr.isfinite(li)))
-        li = dr.gather(mi.Float, li, dr.compress((beta > 0) & dr.isfinite(li)))
+        alive = dr.compress((beta > 0) & dr.isfinite(li))
+        i, li = dr.gather(mi.UInt32, i, alive), dr.gather(mi.Float, li, alive)
         return (np.array(dr.gather(mi.UInt32, self.voxel, i)).astype(np.int64) - 1,
                 np.array(dr.gather(mi.UInt32, self.cell, i)).astype(np.int64), np.array(li))
 
@@ -409,8 +424,8 @@ class GuidedPathIntegrator(IlluminationEstimator):
                              "(the cells are found by bisection), e.g. 8")
         self._guide = None                  # device arrays of the current guide
         self._records = None
-        #: The last render's learning: per training pass (spp, leaves, trained
-        #: leaves) -- what the validation report's learning curve reads.
+        #: The last render's learning: per training pass its spp, the records
+        #: learned from so far, the tree's leaves and those that learned.
         self.training: list[dict] = []
 
     # ---------------------------- Render ---------------------------------
@@ -425,7 +440,7 @@ class GuidedPathIntegrator(IlluminationEstimator):
         self._grid = grid_of(scene.bbox())
         pixels = int(dr.prod(sensor_.film().crop_size()))
         depth = int(min(self.max_depth, TRAIN_DEPTH))
-        records = []                        # (p, u, L_i) of every pass so far
+        records = []                        # (voxel, cell, L_i) of every pass so far
         try:
             for i, n in enumerate(training_passes(spp, self.train_fraction)):
                 records.append(self._train(scene, sensor, pass_seed(seed, i), n, pixels, depth))
@@ -469,14 +484,11 @@ class GuidedPathIntegrator(IlluminationEstimator):
     def record_vertex(self, lane, depth, si, wo_world, pdf, delta, β, L, active):
         rec = self._records
         # the direction's cell in the guide frame; one to the other side is not learned
-        frame, side = guide_frame(si)
-        w = frame.to_local(wo_world)
-        cell = square_cell(mi.warp.cosine_hemisphere_to_square(
-            mi.Vector3f(w.x, w.y, w.z * side)), self.directional_res)
+        w = to_guide(si, wo_world)
+        cell = square_cell(mi.warp.cosine_hemisphere_to_square(w), self.directional_res)
         voxel = voxel_of(si.p, self._grid)
         # (no `~` on masks: in scalar variants they are Python bools)
-        keep = dr.select(delta, False, active & (depth < rec.depth) & (pdf > 0)
-                         & (w.z * side > 0))
+        keep = dr.select(delta, False, active & (depth < rec.depth) & (pdf > 0) & (w.z > 0))
         if not dr.is_jit_v(mi.Float):
             if keep:
                 rec.rows[(lane, depth)] = [voxel, cell, dr.mean(β), dr.mean(L)]
@@ -511,7 +523,7 @@ class GuidedPathIntegrator(IlluminationEstimator):
     # ------------------------- Sample the next direction -------------------
 
     def mixture(self, si, bsdf):
-        """(the BSDF's share α at this vertex, the leaf's first bin): α = 1
+        """(the BSDF's share α at this vertex, the leaf's first cell): α = 1
         for a BSDF with a delta lobe and where nothing was learned."""
         node = _take(self._guide["leaf"], voxel_of(si.p, self._grid))
         alpha = _take(self._guide["alpha"], node)
@@ -528,10 +540,8 @@ class GuidedPathIntegrator(IlluminationEstimator):
 
         # Either technique's direction (both drawn: the lanes pick one)
         wo_b, w_b, pdf_b, delta_b, eta_b = sample_bsdf_direction(bsdf, ctx, si, u1, u2)
-        frame, side = guide_frame(si)
         wg, _ = sample_guide(g["cdf"], base, res, u1, u2)
-        wg_world = frame.to_world(mi.Vector3f(wg.x, wg.y, wg.z * side))
-        wo = dr.select(from_bsdf, wo_b, si.to_local(wg_world))
+        wo = dr.select(from_bsdf, wo_b, si.to_local(from_guide(si, wg)))
 
         # p = α p_bsdf + (1 - α) p_guide;  weight = f cos / p
         f_cos, p_bsdf = bsdf.eval_pdf(ctx, si, wo)
@@ -553,10 +563,8 @@ class GuidedPathIntegrator(IlluminationEstimator):
     def guide_density(self, si, base, wo_world):
         """The learned density at world direction ``wo_world`` (0 on the side
         the path did not arrive from)."""
-        frame, side = guide_frame(si)
-        w = frame.to_local(wo_world)
         return guide_pdf(self._guide["pmf"], base, self.directional_res,
-                         mi.Vector3f(w.x, w.y, w.z * side))
+                         to_guide(si, wo_world))
 
     def to_string(self) -> str:
         return (super().to_string()[:-1] + f", bsdf_fraction={self.bsdf_fraction}, "

@@ -17,7 +17,7 @@ import mitsuba as mi
 from mcillum.testing import assert_unbiased, compare
 from mcillum.validation.run import renders
 
-from conftest import SCENES
+from conftest import SCENES, batch
 
 ROOM = str(SCENES / "sunlit_room.xml")
 
@@ -98,8 +98,7 @@ def test_bad_parameters_are_refused(llvm, params, message):
 # ------------------------------- Learning -----------------------------------
 
 def pixel_variance(scene, integrator, spp, seeds=12):
-    images = np.stack([renders.render(scene, integrator, spp, seed=s).image[..., :3]
-                       for s in range(seeds)])
+    images = batch(scene, integrator, spp, seeds)[..., :3]
     return float(np.mean(images.var(axis=0, ddof=1))), float(images.mean())
 
 
