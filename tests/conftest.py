@@ -4,6 +4,7 @@ twins.py."""
 
 from __future__ import annotations
 
+import gc
 import ipaddress
 import signal
 import socket
@@ -112,6 +113,22 @@ def loopback_only():
     yield
     socket.socket.connect, socket.socket.connect_ex, socket.socket.sendto = real
     socket.getaddrinfo = real_getaddrinfo
+
+
+@pytest.fixture(autouse=True, scope="module")
+def release_scenes(request):
+    """After each test module, the scenes its caches hold are released.
+
+    Every live scene joins the registry Dr.Jit's virtual calls dispatch
+    over, so each render in the process slows with every scene kept alive
+    (docs/measurements.md); the modules' ``functools.lru_cache`` helpers
+    keep theirs for the rest of the run unless cleared here."""
+    yield
+    for value in list(vars(request.module).values()):
+        clear = getattr(value, "cache_clear", None)
+        if callable(clear) and hasattr(value, "cache_info"):
+            clear()
+    gc.collect()
 
 
 @pytest.fixture(params=VARIANTS)

@@ -109,6 +109,7 @@ def _without_timings(value):
     return value
 
 
+@pytest.mark.slow          # (two runs and a Ray cluster's start: the longest test)
 def test_ray_run_gives_the_local_images_even_when_a_worker_dies(tmp_path):
     local = _mcillum(*ARGS, "--out", str(tmp_path / "local"), "--cache", str(tmp_path / "c1"))
     out, err = local.communicate(timeout=900)

@@ -331,12 +331,37 @@ def test_corrupt_cache_entry_is_rendered_anew(llvm, tmp_path):
     np.testing.assert_allclose(b.mean, a.mean, rtol=1e-6)  # same seeds, same image
 
 
+#: TINY as a profile file (its display stage at 32² on cap_plane only).
+KILLED_PROFILE = """
+name = "killed"
+reference_max_seconds = 20.0
+[display]
+res = 32
+[[scenes]]
+scene = "furnace_sphere"
+res = 8
+ladder = [4, 16, 64, 256]
+renders = 8
+max_depth = 2
+display = false
+[[scenes]]
+scene = "cap_plane"
+res = 4
+ladder = [16, 64, 256, 1024]
+renders = 8
+max_depth = 2
+"""
+
+
 def test_cache_survives_a_killed_run(llvm, tmp_path):
     """Kill `mcillum validate` mid-run: no partial files are left where complete
     ones are expected, and a re-run completes, reusing what was finished."""
     out, cache = tmp_path / "out", tmp_path / "cache"
+    # (TINY's runs as a profile file: the subprocess cannot see a monkeypatch)
+    small = tmp_path / "small.toml"
+    small.write_text(KILLED_PROFILE)
     cmd = [sys.executable, "-m", "mcillum.validation.cli", "validate", "--out", str(out),
-           "--cache", str(cache), "--scenes", "cap_plane", "furnace_sphere"]
+           "--cache", str(cache), "--profile", str(small)]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 240
     while time.time() < deadline and not completed(out / "renders"):
