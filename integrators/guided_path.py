@@ -123,7 +123,6 @@ def voxel_of(p: mi.Point3f, grid) -> mi.UInt32:
 
 TRAIN_DEPTH = 8            # vertices of a training path that are recorded
 PASSES = 2                 # training passes at most (each traces the kernel again)
-MAX_LEARN = 1 << 19        # records a guide is learned from at most
 MAX_RECORDS = 1 << 22      # records per training render (longer passes split)
 FLOOR = 0.1                # uniform share of every learned pmf
 MAX_TREE_DEPTH = 3 * 5    # (a leaf of one voxel: GRID = 2^5)
@@ -175,13 +174,16 @@ class Guide:
         return int(np.sum(self.trained & (self.child == 0)))
 
     @classmethod
-    def learn(cls, res: int, voxel, cell, li, ld, threshold: int) -> Guide:
-        """The tree and pmfs of the records (their voxel, their direction's
-        cell of the square, the radiance arriving indirectly ``li`` and the
-        emission the direction hit, MIS-weighted, ``ld``), built breadth
-        first over the grid (in voxel units). A node with fewer than two
-        records per cell keeps its parent's pmf (uniform at the root: cosine
-        sampling, not trained).
+    def learn(cls, res: int, voxels, hits, li, ld, threshold: int) -> Guide:
+        """The tree and pmfs of the records, given as their sums per voxel
+        (``voxels``) and cell of the square (:func:`tally`): ``hits``
+        records, ``li`` the
+        radiance they saw arrive indirectly, ``ld`` the emission their
+        direction hit, MIS-weighted. Built breadth first over the grid (in
+        voxel units); a node's statistics are sums over its voxels, since a
+        split never divides a voxel. A node with fewer than two records per
+        cell keeps its parent's pmf (uniform at the root: cosine sampling,
+        not trained).
 
         A cell's weight is the mean L_i of the records in it (cells no
         record fell in get the node's mean): every cell spans the same
@@ -198,17 +200,19 @@ class Guide:
         if not np.any(li > 0):          # (no light arrived: no node would learn)
             return g
         nb = res * res
-        p = _voxel_centres(voxel)
+        p = _voxel_centres(voxels)
         axis, split, child, pmf, trained = [0], [0.0], [0], [g.pmf[0]], [False]
         indirect = [0.0]
-        queue = deque([(0, np.arange(len(li)), np.zeros(3), np.full(3, float(GRID)), 0)])
+        queue = deque([(0, np.arange(len(voxels)), np.zeros(3), np.full(3, float(GRID)), 0)])
         while queue:
             node, idx, lo, hi, depth = queue.popleft()
-            own = _cell_pmf(cell[idx], li[idx], nb) if len(idx) >= 2 * nb else None
+            h, l_i = hits[idx].sum(axis=0), li[idx].sum(axis=0)
+            count = int(h.sum())
+            own = _cell_pmf(h, l_i) if count >= 2 * nb else None
             if own is not None:
                 pmf[node], trained[node] = own, True
-                indirect[node] = _indirect_share(li[idx], ld[idx])
-            if len(idx) <= threshold or depth >= MAX_TREE_DEPTH or np.max(hi - lo) <= 1:
+                indirect[node] = _indirect_share(l_i.sum(), ld[idx].sum())
+            if count <= threshold or depth >= MAX_TREE_DEPTH or np.max(hi - lo) <= 1:
                 continue
             a = int(np.argmax(hi - lo))
             mid = 0.5 * (lo[a] + hi[a])
@@ -274,10 +278,11 @@ def mixture_share(bsdf_fraction: float, indirect):
     return 1.0 - (1.0 - bsdf_fraction) * np.asarray(indirect)
 
 
-def _indirect_share(li, ld) -> float:
-    """Σ li / Σ (li + ld) of a node's records (1 where nothing arrived)."""
-    total = float(np.sum(li) + np.sum(ld))
-    return float(np.sum(li)) / total if total > 0 else 1.0
+def _indirect_share(li: float, ld: float) -> float:
+    """Σ li / Σ (li + ld) of a node's records, from the two sums (1 where
+    nothing arrived)."""
+    total = float(li + ld)
+    return float(li) / total if total > 0 else 1.0
 
 
 def _voxel_centres(voxel: np.ndarray) -> np.ndarray:
@@ -286,26 +291,27 @@ def _voxel_centres(voxel: np.ndarray) -> np.ndarray:
     return np.stack([v % GRID, (v // GRID) % GRID, v // (GRID * GRID)], axis=1) + 0.5
 
 
-def _subset(*columns):
-    """At most MAX_LEARN of the records (columns of equal length), a fixed
-    random choice: learning time grows with the records, and the tree's
-    depth only with their log."""
-    n = len(columns[0])
-    if n <= MAX_LEARN:
-        return columns
-    keep = np.random.default_rng(n).choice(n, MAX_LEARN, replace=False)
-    return tuple(c[keep] for c in columns)
+def tally(res: int, voxel, cell, li, ld):
+    """The records summed per voxel and cell of the square: (the voxels
+    they fell in, then per voxel and cell (n, res²) their count, Σ li and
+    Σ ld). Learning reads only these, so its time grows with the voxels
+    the paths visited, not with the records."""
+    nb = res * res
+    occupied = np.flatnonzero(np.bincount(voxel, minlength=GRID ** 3))
+    row = np.zeros(GRID ** 3, np.int64)
+    row[occupied] = np.arange(len(occupied))
+    key, size = row[voxel] * nb + cell, len(occupied) * nb
+    return (occupied,) + tuple(np.bincount(key, weights=w, minlength=size).reshape(-1, nb)
+                               for w in (None, li, ld))
 
 
-def _cell_pmf(cells, li, nb: int):
-    """The pmf of one node (see :meth:`Guide.learn`), None where its records
-    carry no light."""
-    total = np.bincount(cells, weights=li, minlength=nb)
-    hits = np.bincount(cells, minlength=nb)
+def _cell_pmf(hits, total):
+    """The pmf of one node from its records per cell and their Σ L_i (see
+    :meth:`Guide.learn`), None where its records carry no light."""
     if total.sum() <= 0:
         return None
     weight = np.where(hits > 0, total / np.maximum(hits, 1), total.sum() / hits.sum())
-    return (1 - FLOOR) * weight / weight.sum() + FLOOR / nb
+    return (1 - FLOOR) * weight / weight.sum() + FLOOR / len(hits)
 
 
 class Records:
@@ -497,14 +503,14 @@ class GuidedPathIntegrator(IlluminationEstimator):
         self._grid = grid_of(scene.bbox())
         pixels = int(dr.prod(sensor_.film().crop_size()))
         depth = int(min(self.max_depth, TRAIN_DEPTH))
-        records = []                        # (voxel, cell, L_i) of every pass so far
+        records = []                        # (voxel, cell, L_i, L_d) of every pass so far
         try:
             for i, n in enumerate(training_passes(spp, self.train_fraction)):
                 records.append(self._train(scene, sensor, pass_seed(seed, i), n, pixels, depth))
-                voxel, cell, li, ld = _subset(*(np.concatenate(c) for c in zip(*records)))
-                guide = Guide.learn(self.directional_res, voxel, cell, li, ld,
-                                    self.spatial_threshold)
-                self.training.append({"spp": n, "records": len(li), "leaves": guide.leaves,
+                sums = tally(self.directional_res, *(np.concatenate(c) for c in zip(*records)))
+                guide = Guide.learn(self.directional_res, *sums, self.spatial_threshold)
+                self.training.append({"spp": n, "records": int(sums[1].sum()),
+                                      "leaves": guide.leaves,
                                       "trained_leaves": guide.trained_leaves,
                                       "bsdf_share": guide.bsdf_share(self.bsdf_fraction)})
                 if not guide.trained_leaves:
