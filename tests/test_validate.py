@@ -331,35 +331,25 @@ def test_corrupt_cache_entry_is_rendered_anew(llvm, tmp_path):
     np.testing.assert_allclose(b.mean, a.mean, rtol=1e-6)  # same seeds, same image
 
 
-#: TINY as a profile file (its display stage at 32² on cap_plane only).
-KILLED_PROFILE = """
-name = "killed"
-reference_max_seconds = 20.0
-[display]
-res = 32
-[[scenes]]
-scene = "furnace_sphere"
-res = 8
-ladder = [4, 16, 64, 256]
-renders = 8
-max_depth = 2
-display = false
-[[scenes]]
-scene = "cap_plane"
-res = 4
-ladder = [16, 64, 256, 1024]
-renders = 8
-max_depth = 2
-"""
+def as_profile_file(profile: profiles.Profile) -> str:
+    """A profile's scene runs as a profile file's text, for a subprocess
+    (which a monkeypatched profile does not reach)."""
+    lines = [f'name = "{profile.name}"',
+             f"reference_max_seconds = {profile.reference_max_seconds}"]
+    for run in profile.runs:
+        lines += ["[[scenes]]", f'scene = "{run.scene}"', f"res = {run.res}",
+                  f"ladder = {list(run.ladder)}", f"renders = {run.renders}",
+                  f"max_depth = {run.max_depth}",
+                  f"display = {{res = {run.display.res}}}" if run.display else "display = false"]
+    return "\n".join(lines) + "\n"
 
 
 def test_cache_survives_a_killed_run(llvm, tmp_path):
     """Kill `mcillum validate` mid-run: no partial files are left where complete
     ones are expected, and a re-run completes, reusing what was finished."""
     out, cache = tmp_path / "out", tmp_path / "cache"
-    # (TINY's runs as a profile file: the subprocess cannot see a monkeypatch)
-    small = tmp_path / "small.toml"
-    small.write_text(KILLED_PROFILE)
+    small = tmp_path / "tiny.toml"
+    small.write_text(as_profile_file(TINY))
     cmd = [sys.executable, "-m", "mcillum.validation.cli", "validate", "--out", str(out),
            "--cache", str(cache), "--profile", str(small)]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
