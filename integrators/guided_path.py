@@ -177,9 +177,8 @@ class Guide:
     def learn(cls, res: int, voxels, hits, li, ld, threshold: int) -> Guide:
         """The tree and pmfs of the records, given as their sums per voxel
         (``voxels``) and cell of the square (:func:`tally`): ``hits``
-        records, ``li`` the
-        radiance they saw arrive indirectly, ``ld`` the emission their
-        direction hit, MIS-weighted. Built breadth first over the grid (in
+        records, ``li`` the radiance they saw arrive indirectly, ``ld`` the
+        emission their direction hit, MIS-weighted. Built breadth first over the grid (in
         voxel units); a node's statistics are sums over its voxels, since a
         split never divides a voxel. A node with fewer than two records per
         cell keeps its parent's pmf (uniform at the root: cosine sampling,
@@ -525,8 +524,8 @@ class GuidedPathIntegrator(IlluminationEstimator):
 
     def _train(self, scene, sensor, seed, spp, pixels, depth):
         """One training pass of ``spp`` (in pieces of at most MAX_RECORDS
-        vertices), sampling with the guide learned so far: (voxel, cell, L_i, L_d) of its
-        vertices (:meth:`Records.learned`). Every record estimates L_i
+        vertices), sampling with the guide learned so far: (voxel, cell,
+        L_i, L_d) of its vertices (:meth:`Records.learned`). Every record estimates L_i
         whatever density drew it, so the passes' records are pooled."""
         pieces = max(1, -(-pixels * spp * depth // MAX_RECORDS))
         per = [spp // pieces + (k < spp % pieces) for k in range(pieces)]

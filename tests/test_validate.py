@@ -25,6 +25,7 @@ from mcillum.validation.stages.context import Context, Run
 
 import twins
 from conftest import disagreements
+from test_profile_files import dump
 
 # A small profile for tests: the two analytic scenes, few rungs.
 TINY = profiles.Profile(name="quick", runs=(
@@ -331,25 +332,12 @@ def test_corrupt_cache_entry_is_rendered_anew(llvm, tmp_path):
     np.testing.assert_allclose(b.mean, a.mean, rtol=1e-6)  # same seeds, same image
 
 
-def as_profile_file(profile: profiles.Profile) -> str:
-    """A profile's scene runs as a profile file's text, for a subprocess
-    (which a monkeypatched profile does not reach)."""
-    lines = [f'name = "{profile.name}"',
-             f"reference_max_seconds = {profile.reference_max_seconds}"]
-    for run in profile.runs:
-        lines += ["[[scenes]]", f'scene = "{run.scene}"', f"res = {run.res}",
-                  f"ladder = {list(run.ladder)}", f"renders = {run.renders}",
-                  f"max_depth = {run.max_depth}",
-                  f"display = {{res = {run.display.res}}}" if run.display else "display = false"]
-    return "\n".join(lines) + "\n"
-
-
 def test_cache_survives_a_killed_run(llvm, tmp_path):
     """Kill `mcillum validate` mid-run: no partial files are left where complete
     ones are expected, and a re-run completes, reusing what was finished."""
     out, cache = tmp_path / "out", tmp_path / "cache"
     small = tmp_path / "tiny.toml"
-    small.write_text(as_profile_file(TINY))
+    small.write_text(dump(TINY))          # (a subprocess does not see the monkeypatch)
     cmd = [sys.executable, "-m", "mcillum.validation.cli", "validate", "--out", str(out),
            "--cache", str(cache), "--profile", str(small)]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
