@@ -3,93 +3,28 @@ diffuse surfaces, with the posterior standard deviation of every pixel."""
 
 from __future__ import annotations
 
-import hashlib
+import warnings
 
 import drjit as dr
 import mitsuba as mi
-import numpy as np
 
-from . import gp_quadrature, registry
+from . import gp_settings, registry
 from .direction_set import DirectionSetEstimator
-from .fibonacci_hemisphere import GOLDEN, MAPPINGS, fibonacci_point
+from .fibonacci_hemisphere import MAPPINGS, fibonacci_point
+from .gp_scene import (DEFAULT_LENGTH_SCALE, DEFAULT_MAPPING, DEFAULT_NOISE, DEFAULT_SETS,
+                       choose_hyperparameters, likelihood_length_scale)
 
-#: ℓ where the scene has no environment map to fit it to.
-DEFAULT_LENGTH_SCALE = 0.5
-#: Environment samples the marginal likelihood is maximised over.
-FIT_SAMPLES = 512
 PRIOR_MEANS = ("constant", "zero")
 
 # ----------------------------- Strategy ---------------------------------
-# Directions: the N-point spherical-Fibonacci set, cosine-mapped, rotated about
-# the normal by one random angle per shading point (u_j kept, v_j shifted): the
-# rotation leaves every θ_j, hence z and Q, unchanged. Weights: a = Q⁻¹z with
-# the constant-mean correction (gp_quadrature.weights), the same at every pixel.
-
-
-def rotated_point(j, n, turn) -> mi.Point2f:
-    """Point j of the unshifted set, turned by ``turn`` (a fraction of 2π)."""
-    return fibonacci_point(j, n, mi.Point2f(0.0, turn))
-
-
-def sphere_directions(m: int) -> np.ndarray:
-    """m near-uniform directions on the whole sphere (a Fibonacci sphere)."""
-    j = np.arange(m)
-    z = 1.0 - (2.0 * j + 1.0) / m
-    phi = 2.0 * np.pi * np.mod(j / GOLDEN, 1.0)
-    r = np.sqrt(1.0 - z * z)
-    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
-
-
-def environment_samples(scene, m: int = FIT_SAMPLES):
-    """(directions, radiance averaged over channels) of the scene's environment
-    at m directions; None if the scene has none."""
-    env = scene.environment()
-    if env is None:
-        return None
-    d = sphere_directions(m)
-    if dr.is_jit_v(mi.Float):
-        si = dr.zeros(mi.SurfaceInteraction3f, m)
-        si.wi = -mi.Vector3f(d[:, 0], d[:, 1], d[:, 2])
-        si.wavelengths = _visible(si.wavelengths)
-        values = np.array(env.eval(si), dtype=float)    # (channels, m), or (channels,)
-        values = np.broadcast_to(values.reshape(values.shape[0], -1), (values.shape[0], m)).T
-    else:
-        values = []
-        for x, y, z in d:
-            si = dr.zeros(mi.SurfaceInteraction3f)
-            si.wi = -mi.Vector3f(x, y, z)
-            si.wavelengths = _visible(si.wavelengths)
-            values.append(np.array(env.eval(si), dtype=float).ravel())
-        values = np.array(values)
-    return d, values.reshape(m, -1).mean(axis=1)
-
-
-def _visible(wavelengths):
-    """Wavelengths across the visible range (spectral variants evaluate the
-    map at these; RGB and mono variants ignore them)."""
-    if not mi.is_spectral:
-        return wavelengths
-    return type(wavelengths)(*(mi.Float(450.0 + 200.0 * i / (len(wavelengths) - 1))
-                               for i in range(len(wavelengths))))
-
-
-_fitted: dict[str, float] = {}
-
-
-def fit_length_scale(scene, noise: float) -> tuple[float, str]:
-    """ℓ by maximum marginal likelihood over the scene's environment (cached
-    by the sampled values), and how it was chosen."""
-    samples = environment_samples(scene)
-    if samples is None:
-        return DEFAULT_LENGTH_SCALE, "default (no environment map)"
-    d, y = samples
-    if np.ptp(y) <= 1e-6 * max(float(np.abs(y).max()), 1e-30):    # (float32 texels)
-        return DEFAULT_LENGTH_SCALE, "default (the environment is constant: nothing to fit)"
-    key = hashlib.sha1(np.ascontiguousarray(y, np.float64).tobytes() +
-                       repr(noise).encode()).hexdigest()
-    if key not in _fitted:
-        _fitted[key] = gp_quadrature.fit(d, y, noise).length_scale
-    return _fitted[key], "maximum marginal likelihood over the environment map"
+# Directions: one of `sets` spherical-Fibonacci sets, u shifted between the
+# unshifted set's neighbours (gp_quadrature.set_shift), cosine- or
+# uniform-mapped, turned about the normal by one random angle per shading
+# point: the turn leaves every θ_j, hence z and Q, unchanged, so each set's
+# weights a = Q⁻¹z (with the constant-mean correction) are the same at every
+# pixel. Drawing the set at random makes a pixel average several sets'
+# errors: one fixed set's error about a normal is the same for every turn,
+# and spp would not average it away.
 
 
 # ------------------------------ Plugin ----------------------------------
@@ -109,13 +44,15 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
        - N, directions per shading point. (Default: 64)
      * - length_scale
        - |float| or |string|
-       - ℓ of the kernel; ``auto`` fits it by maximum marginal likelihood to
-         512 samples of the scene's environment map (0.5 without one).
-         (Default: ``auto``)
+       - ℓ of the kernel (radians); ``auto`` chooses it for the quadrature
+         (below), ``likelihood`` fits it by maximum marginal likelihood to
+         512 samples of the scene's environment map (the lighting's own
+         scale). (Default: ``auto``)
      * - noise
-       - |float|
+       - |float| or |string|
        - σ_n²/σ², the noise added to the kernel's diagonal, relative to the
-         prior variance (regularises Q). (Default: 0.001)
+         prior variance (regularises Q; large values tend to equal
+         weights); ``auto`` chooses it. (Default: ``auto``)
      * - prior_mean
        - |string|
        - ``constant`` (the mean of the N samples) or ``zero``. (Default: ``constant``)
@@ -123,7 +60,11 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
        - |string|
        - Where the nodes lie: ``cosine`` (cos θ = √(1 − u), denser near the
          normal) or ``uniform`` (cos θ = 1 − u); the integral is against
-         cos θ/π either way. (Default: ``cosine``)
+         cos θ/π either way; ``auto`` chooses. (Default: ``auto``)
+     * - sets
+       - |int|
+       - Node sets, u shifted between the first set's neighbours, that each
+         shading point draws one of at random; 1: one fixed set. (Default: 16)
      * - max_depth
        - |int|
        - 2: direct illumination; 1: only emitters seen directly; others are
@@ -145,9 +86,27 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
         L_r ≈ ρ Σ_j a_j L_i(ω_j),   a = Q⁻¹z + (1 − Σ Q⁻¹z)/N
 
     (the second term: the constant prior mean L̄ = mean of the samples). The
-    directions are a spherical-Fibonacci set turned about the normal by a
-    random angle per shading point, so z and Q, hence a, are the same
-    everywhere: computed once per (N, ℓ, σ_n²) in float64 and cached.
+    directions are one of ``sets`` spherical-Fibonacci sets (shifted in
+    u), drawn at random and turned about the normal by a random angle per
+    shading point, so each set's z and Q, hence a, are the same everywhere:
+    computed once per (N, ℓ, σ_n², set) in float64 and cached. A fixed set
+    errs the same way at every turn about a normal, an error spp does not
+    average away; drawing among shifted sets averages several sets' errors.
+
+    ``auto`` settings are chosen for the quadrature, not for the lighting:
+    each candidate (ℓ from half the nodes' spacing, ½√(2π/N), to 2; σ_n²/σ²
+    of 0.001, 0.1 and 10; both mappings) is scored by the relative squared
+    error a pixel of the render's spp would get on known integrals, the
+    scene's environment map integrated against cos θ/π about the normals
+    of the surfaces the camera sees at 64 film positions (exactly, by the
+    map's own importance sampling), every set at evenly spaced turns. The
+    least error wins where it beats the safe candidate (largest σ_n² and ℓ:
+    nearly equal weights) by more than two standard errors of the paired
+    per-normal differences; else the safe one. Chosen once per map, N, spp
+    and camera view, and cached; ``source`` says how they were chosen and
+    ``choice`` holds every candidate's score. Without an environment map,
+    or with a constant one, ``auto`` means ℓ = 0.5, σ_n²/σ² = 0.001 and
+    cosine nodes.
 
     The estimate is biased by design (it is a posterior mean, not an
     average of samples), and accurate where the lighting is smooth at scale
@@ -191,77 +150,140 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
     def __init__(self, props: mi.Properties):
         super().__init__(props)
         ell = props.get("length_scale", "auto")
-        if not (ell == "auto" or (isinstance(ell, (int, float)) and not isinstance(ell, bool)
-                                  and ell > 0)):
-            raise ValueError(f"{self.plugin_name}: length_scale must be a number > 0 or "
-                             f"'auto', got {ell!r}")
-        self.length_scale_param = ell
-        self.noise = props.get("noise", 1e-3)
-        if isinstance(self.noise, bool) or not isinstance(self.noise, (int, float)) \
-                or self.noise < 0:
+        if not (ell in ("auto", "likelihood") or (isinstance(ell, (int, float))
+                                                  and not isinstance(ell, bool) and ell > 0)):
+            raise ValueError(f"{self.plugin_name}: length_scale must be a number > 0, "
+                             f"'auto' or 'likelihood', got {ell!r}")
+        noise = props.get("noise", "auto")
+        if not (noise == "auto" or (isinstance(noise, (int, float))
+                                    and not isinstance(noise, bool) and noise >= 0)):
             raise ValueError(f"{self.plugin_name}: noise must be a number >= 0 "
-                             f"(σ_n²/σ², e.g. 0.001), got {self.noise!r}")
+                             f"(σ_n²/σ², e.g. 0.001) or 'auto', got {noise!r}")
         self.prior_mean = props.get("prior_mean", "constant")
         if self.prior_mean not in PRIOR_MEANS:
             raise ValueError(f"{self.plugin_name}: prior_mean must be one of "
                              f"{', '.join(PRIOR_MEANS)}, got {self.prior_mean!r}")
-        self.mapping = props.get("mapping", "cosine")
-        if self.mapping not in MAPPINGS:
+        mapping = props.get("mapping", "auto")
+        if mapping != "auto" and mapping not in MAPPINGS:
             raise ValueError(f"{self.plugin_name}: mapping must be one of "
-                             f"{', '.join(MAPPINGS)}, got {self.mapping!r}")
+                             f"{', '.join(MAPPINGS)} or 'auto', got {mapping!r}")
+        self.sets = props.get("sets", DEFAULT_SETS)
+        if isinstance(self.sets, bool) or not isinstance(self.sets, int) or self.sets < 1:
+            raise ValueError(f"{self.plugin_name}: sets must be an integer >= 1 (shifted "
+                             f"node sets drawn from; 1: one fixed set), got {self.sets!r}")
         if self.prior_mean == "constant" and self.directions < 2:
             raise ValueError(f"{self.plugin_name}: directions = {self.directions} with "
                              "prior_mean 'constant' leaves nothing to estimate the prior "
                              "variance from; use directions >= 2 or prior_mean 'zero'")
-        self.length_scale = None if ell == "auto" else float(ell)
-        self.length_scale_source = "given"
-        if self.length_scale is not None:
-            self._use_table()
+        #: What was asked for ('auto', 'likelihood' or a value), per setting.
+        self.asked = {"length_scale": ell, "noise": noise, "mapping": mapping}
+        #: How the settings in use were chosen; the held-out scores (a
+        #: gp_settings.Choice) where they were chosen by them.
+        self.source, self.choice = "given", None
+        self._use(float(ell) if isinstance(ell, (int, float)) else DEFAULT_LENGTH_SCALE,
+                  noise if noise != "auto" else DEFAULT_NOISE,
+                  mapping if mapping != "auto" else DEFAULT_MAPPING)
 
     # -------------------- Hyperparameters and weights ---------------------
 
+    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+        if not getattr(self, "_in_pass", False):
+            # (the settings are chosen for the pixel's sample count)
+            sensor_ = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
+            self._spp = spp or sensor_.sampler().sample_count()
+        return super().render(scene, sensor, seed, spp, develop, evaluate)
+
     def check_scene(self, scene) -> None:
         super().check_scene(scene)
-        if self.length_scale_param == "auto":
-            ell, self.length_scale_source = fit_length_scale(scene, self.noise)
-            if ell != self.length_scale:
-                self.length_scale = ell
-                self._use_table()
+        if all(v not in ("auto", "likelihood") for v in self.asked.values()):
+            return
+        ell = self.asked["length_scale"]
+        noise = self.asked["noise"]
+        if ell == "likelihood":
+            ell = likelihood_length_scale(scene, DEFAULT_NOISE if noise == "auto" else noise)
+        # (nested in a wrapper, render() was not called: the scene's own count)
+        spp = getattr(self, "_spp", None) or scene.sensors()[0].sampler().sample_count()
+        self.choice, self.source = choose_hyperparameters(
+            scene, self.directions, ell, noise, self.asked["mapping"], self.prior_mean,
+            self.sets, spp)
+        c = self.choice
+        if c is None:
+            self._use(ell if isinstance(ell, (int, float)) else DEFAULT_LENGTH_SCALE,
+                      DEFAULT_NOISE if noise == "auto" else noise,
+                      DEFAULT_MAPPING if self.asked["mapping"] == "auto" else
+                      self.asked["mapping"])
+        else:
+            self._use(c.length_scale, c.noise, c.mapping)
+
+    def chosen_settings(self, scene, spp: int) -> dict:
+        self._spp = spp
+        self.check_scene(scene)
+        rows = [] if self.choice is None else [
+            {"mapping": c.mapping, "noise": c.noise, "length_scale": c.length_scale,
+             "relmse": c.relmse} for c in self.choice.candidates]
+        return {"source": self.source, "mapping": self.mapping, "noise": self.noise,
+                "length_scale": self.length_scale, "spp": int(spp), "candidates": rows}
+
+    def _use(self, length_scale: float, noise: float, mapping: str) -> None:
+        """Take these settings and their weights (cached per setting)."""
+        if (getattr(self, "length_scale", None), getattr(self, "noise", None),
+                getattr(self, "mapping", None)) == (length_scale, noise, mapping):
+            return
+        self.length_scale, self.noise, self.mapping = float(length_scale), float(noise), mapping
+        self._use_table()
 
     def _use_table(self):
-        self.table = gp_quadrature.weights(self.directions, self.length_scale, self.noise,
-                                           self.prior_mean, self.mapping)
-        a = [float(x) for x in self.table.weights]
-        self._a = mi.Float(a) if dr.is_jit_v(mi.Float) else a
+        with warnings.catch_warnings():
+            if any(v in ("auto", "likelihood") for v in self.asked.values()):
+                # (a chosen setting's extra jitter is part of what was scored)
+                warnings.simplefilter("ignore", RuntimeWarning)
+            self.tables = gp_settings.set_weights(self.directions, self.length_scale,
+                                                    self.noise, self.prior_mean, self.mapping,
+                                                    self.sets)
+        a = [float(x) for t in self.tables for x in t.weights]
+        c = [float(t.error_factor) for t in self.tables]
+        d = [float(t.amplitude_divisor) for t in self.tables]
+        jit = dr.is_jit_v(mi.Float)
+        self._a, self._c, self._d = (mi.Float(a), mi.Float(c), mi.Float(d)) if jit else (a, c, d)
 
-    def _weight(self, j, active):
+    def _gather(self, table, index, active):
         if dr.is_jit_v(mi.Float):
-            return dr.gather(mi.Float, self._a, j, active)
-        return self._a[j]
+            return dr.gather(mi.Float, table, index, active)
+        return table[int(index)]
 
     # ----------------------------- The set -------------------------------
 
     def draw_set(self, sampler, si, bsdf, ctx, active):
-        return (sampler.next_1d(active),)               # the turn about the normal
+        # the turn about the normal, and which of the shifted sets
+        turn = sampler.next_1d(active)
+        which = mi.UInt32(dr.minimum(sampler.next_1d(active) * self.sets, self.sets - 1))
+        return turn, which
 
     def direction(self, j, drawn, si, bsdf, ctx, active):
-        w_up = MAPPINGS[self.mapping][0](rotated_point(j, self.directions, drawn[0]))
+        turn, which = drawn
+        # u shifted by gp_quadrature.set_shift(which, sets, N)
+        shift = ((mi.Float(which) + 0.5) / self.sets - 0.5) / self.directions \
+            if self.sets > 1 else mi.Float(0.0)
+        w_up = MAPPINGS[self.mapping][0](fibonacci_point(j, self.directions,
+                                                         mi.Point2f(shift, turn)))
         wo = mi.Vector3f(w_up.x, w_up.y, dr.mulsign(w_up.z, si.wi.z))
         p = w_up.z * dr.inv_pi              # the measure cos θ / π, whatever the mapping
         # f cos θ / p = ρ for a diffuse BSDF: the GP models L_i, ρ scales it
         f_cos = bsdf.eval(ctx, si, wo, active)
         factor = dr.select(p > 0, f_cos / dr.select(p > 0, p, 1.0), 0.0)
-        return wo, factor, self._weight(j, active)
+        return wo, factor, self._gather(self._a, which * self.directions + j, active)
 
-    def finish(self, total, s1, s2, y0, active):
+    def finish(self, total, s1, s2, y0, drawn, active):
         n = self.directions
+        which = drawn[1]
         # σ̂² by moments: E[Σ(Y − Ȳ)²] = σ² (tr Q − 1ᵀQ1/N) (zero mean: E[ΣY²] = σ² tr Q);
         # Σ(Y − Ȳ)² = Σd² − (Σd)²/N and ΣY² = Σd² + 2Y₀Σd + N Y₀² for d = Y − Y₀
         if dr.hint(self.prior_mean == "constant", mode='scalar'):
             spread = s2 - dr.square(s1) / n
         else:
             spread = s2 + 2.0 * y0 * s1 + n * dr.square(y0)
-        var = self.table.error_factor * dr.maximum(spread, 0.0) / self.table.amplitude_divisor
+        var = (self._gather(self._c, which, active) * dr.maximum(spread, 0.0)
+               / self._gather(self._d, which, active))
         if dr.hint(mi.is_rgb, mode='scalar'):
             found = [var[0], var[1], var[2]]
         else:
@@ -285,7 +307,8 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
 
     def to_string(self) -> str:
         return (f"BayesianHemisphereIntegrator[directions={self.directions}, "
-                f"length_scale={self.length_scale_param}, noise={self.noise}, "
+                f"length_scale={self.length_scale:g} ({self.asked['length_scale']}), "
+                f"noise={self.noise:g} ({self.asked['noise']}), "
                 f"prior_mean={self.prior_mean}, mapping={self.mapping}]")
 
 

@@ -103,9 +103,9 @@ class DirectionSetEstimator(IlluminationEstimator):
         a_j): the pixel gets Σ a_j · factor_j · L_i(ω_j)."""
         raise NotImplementedError
 
-    def finish(self, total, s1, s2, y0, active):
+    def finish(self, total, s1, s2, y0, drawn, active):
         """(L_r, AOV list) from Σ a_j Y_j, Σ d_j, Σ d_j² and Y_0, where
-        Y_j = factor_j · L_j and d_j = Y_j − Y_0."""
+        Y_j = factor_j · L_j and d_j = Y_j − Y_0, and the set's ``drawn``."""
         return total, []
 
     def finish_aovs(self) -> int:
@@ -119,6 +119,12 @@ class DirectionSetEstimator(IlluminationEstimator):
 
     def aov_names(self):
         return []
+
+    def chosen_settings(self, scene, spp: int) -> dict | None:
+        """How the settings this estimator uses on ``scene`` at ``spp`` were
+        chosen (keys: source, mapping, noise, length_scale, spp,
+        candidates); None where it has none to choose."""
+        return None
 
     # ----------------------------- Estimator -----------------------------
 
@@ -170,7 +176,7 @@ class DirectionSetEstimator(IlluminationEstimator):
                 s1 += Y - y0
                 s2 += dr.square(Y - y0)
                 j += 1
-            L_r, found = self.finish(total, s1, s2, y0, shade)
+            L_r, found = self.finish(total, s1, s2, y0, drawn, shade)
             L += L_r
             aovs = list(found)
 

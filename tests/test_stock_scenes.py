@@ -288,7 +288,7 @@ def test_bayesian_fits_its_length_scale_nested_in_moment(llvm, tmp_path):
     mi.render(scene, spp=1)
     alone = renders.make_integrator("bayesian_hemisphere", {"max_depth": 2})
     alone.check_scene(scene)
-    assert nested.length_scale_source == alone.length_scale_source != "given"
+    assert nested.source == alone.source != "given"
     assert nested.length_scale == alone.length_scale
 
 
