@@ -23,6 +23,7 @@ from ..results import CaseResult, Results, SceneResult
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402  (after choosing the headless backend)
 import matplotlib.patches  # noqa: E402
+import matplotlib.ticker  # noqa: E402
 
 
 def palette(results: Results) -> dict[str, str]:
@@ -154,6 +155,36 @@ def error_vs_spp(scene: SceneResult, colours: dict) -> str:
         ax.loglog(xs, e0 * (xs / s0) ** -1.0, "k--", lw=1, label="ideal slope −1")
     return _finish(fig, ax, "samples per pixel", "relMSE (ε = 0.01)",
                    f"{scene.name}: convergence")
+
+
+def settings_curve(q) -> str:
+    """An estimator's held-out error against ℓ, a line per (mapping, noise):
+    the noise by colour, the mapping by dash; the chosen setting starred
+    (quadrature stage's ``settings``)."""
+    st = q.settings
+    fig, ax = plt.subplots(figsize=(5.2, 3.8))
+    lines = {}
+    for c in st.candidates:
+        if np.isfinite(c.relmse) and c.relmse > 0:
+            lines.setdefault((c.mapping, c.noise), []).append((c.length_scale, c.relmse))
+    styles = {"cosine": "-", "uniform": "--"}
+    noises = sorted({noise for _, noise in lines})
+    cmap = plt.get_cmap("viridis")
+    for (mapping, noise), pts in sorted(lines.items()):
+        pts.sort()
+        shade = cmap(0.85 * noises.index(noise) / max(len(noises) - 1, 1))
+        ax.loglog(*zip(*pts), styles.get(mapping, ":"), marker="o", ms=3, color=shade,
+                  label=f"{mapping}, σ_n²/σ² = {noise:g}")
+    best = [c.relmse for c in st.candidates if (c.mapping, c.noise, c.length_scale)
+            == (st.mapping, st.noise, st.length_scale)]
+    if best and best[0] > 0:
+        ax.loglog([st.length_scale], best, "*", color="#d62728", ms=14,
+                  label=f"chosen: {st.mapping}, {st.noise:g}, ℓ = {st.length_scale:.2g}")
+    ax.set_xticks([0.1, 0.2, 0.5, 1.0, 2.0], ["0.1", "0.2", "0.5", "1", "2"])
+    ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+    return _finish(fig, ax, "length scale ℓ (radians)",
+                   f"held-out relMSE at {st.spp} spp",
+                   f"{q.name}, N = {q.directions}: settings")
 
 
 def error_spread(scene: SceneResult, colours: dict) -> str:

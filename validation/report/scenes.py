@@ -60,6 +60,7 @@ def _quadrature_section(scene: SceneResult, colours: dict) -> str:
                              f"<td>{100 * b.rms_bias:.2f} % ± {100 * b.rms_bias_se:.2f} %</td>"
                              f"<td>{100 * b.mean_bias:+.2f} %</td></tr>")
     q0 = scene.quadrature[0]
+    settings = "".join(_settings(q, colours) for q in scene.quadrature if q.settings)
     bias = ("<p>Bias against N (an estimator biased by design): rms over pixels of the "
             "mean of K renders less the reference, corrected for the noise of both, "
             "relative to the reference's rms; and the image mean's relative bias.</p>"
@@ -74,7 +75,23 @@ RMSE over the predicted posterior std (the reference's variance added); calibrat
 median lies in [0.5, 2] (above: over-confident); outside [0.1, 3] the check fails.</p>
 <table><tr><th>estimator</th><th>N</th><th>relMSE ÷ cosine at equal rays</th>
 <th>posterior std</th></tr>{''.join(rows)}</table>
-{bias}"""
+{bias}{settings}"""
+
+
+def _settings(q, colours: dict) -> str:
+    """How an estimator chose its settings: the choice, and where the
+    candidates were scored, their held-out error against ℓ."""
+    st = q.settings
+    text = (f"<p>{swatch(q.name, colours)} settings: {html.escape(st.mapping)} nodes, "
+            f"σ_n²/σ² = {st.noise:g}, ℓ = {st.length_scale:.3g} "
+            f"({html.escape(st.source)}).")
+    if not st.candidates:
+        return text + "</p>"
+    return (text + " Each candidate is scored by the relative squared error a pixel of "
+            f"{st.spp} spp gets on known integrals (the environment map about the normals "
+            "the camera sees); the least error wins where it beats the safe candidate "
+            "(largest σ_n²/σ² and ℓ: nearly equal weights) by more than two standard "
+            "errors.</p>" + charts.settings_curve(q))
 
 
 

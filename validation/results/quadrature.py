@@ -44,6 +44,29 @@ class Calibration:
 
 
 @dataclass(kw_only=True)
+class SettingScore:
+    """One candidate's held-out error (integrators/gp_settings.py)."""
+
+    mapping: str
+    noise: float
+    length_scale: float
+    relmse: float                # at the render's spp; inf where it could not be solved
+
+
+@dataclass(kw_only=True)
+class Settings:
+    """How an estimator chose its settings for the scene (bayesian_hemisphere's
+    ``auto``): what it chose, how, and every candidate's score."""
+
+    source: str
+    mapping: str
+    noise: float
+    length_scale: float
+    spp: int                     # the pixel's sample count they were chosen for
+    candidates: list[SettingScore] | None = optional()
+
+
+@dataclass(kw_only=True)
 class Quadrature:
     """What the quadrature stage measured of one estimator of N directions."""
 
@@ -54,4 +77,5 @@ class Quadrature:
     equal_rays: EqualRays | None = optional()
     bias: list[BiasAtN] | None = optional()
     calibration: Calibration | None = optional()
+    settings: Settings | None = optional()      # minor version 10
 

@@ -30,7 +30,9 @@ VERSION = 1
 #: ratio has a ``kind``, each budget run its ``tries`` (corrections toward
 #: the budget) and the stage the load other processes put on the machine
 #: (``others_cores``, ``cores``, ``loaded``); ``rerun_seconds``.
-MINOR_VERSION = 9
+#: 10: per quadrature estimator ``settings``: how it chose its settings for
+#: the scene, and every candidate's held-out error.
+MINOR_VERSION = 10
 
 
 @dataclass(kw_only=True)

@@ -12,6 +12,9 @@ measured on beyond the spp ladder, at the ladder's top rung and resolution.
   directions), summarised as the noise-corrected rms over pixels
   √(mean(b² − v/K − v_ref)) relative to the rms of the reference, ± its
   standard error. It must shrink from N = 16 to 256 (a check).
+* **Settings** (estimators that choose them, ``chosen_settings``): what
+  was chosen for the scene at this spp, how, and every candidate's
+  held-out error (bayesian_hemisphere's ``auto``: integrators/gp_settings.py).
 * **Calibration of the posterior standard deviation** (estimators that
   write the ``posterior_std`` AOV): per pixel, the RMSE of the K renders
   against the reference over the predicted std (rms over renders, the
@@ -32,7 +35,7 @@ from mcillum.integrators import registry
 
 from ..checks import convergence
 from ..plan import seeds
-from ..results import BiasAtN, Calibration, EqualRays, Quadrature
+from ..results import BiasAtN, Calibration, EqualRays, Quadrature, SettingScore, Settings
 from ..run import jobs, stacks
 from ..stats import metrics
 
@@ -85,7 +88,19 @@ def measure(ctx) -> None:
         if "posterior_std" in own.aovs:
             calibration = _calibration(own, ref)
         ctx.quadrature[name] = Quadrature(name=name, directions=n, spp=spp, renders=k,
-                                          equal_rays=rays, bias=bias, calibration=calibration)
+                                          equal_rays=rays, bias=bias, calibration=calibration,
+                                          settings=_settings(ctx, name, spp))
+
+
+def _settings(ctx, name, spp) -> Settings | None:
+    """How the estimator chose its settings for the scene at the stage's spp
+    (asked of the driver's own instance: renders may have run elsewhere)."""
+    chosen = getattr(ctx.integrators[name].made, "chosen_settings", None)
+    found = chosen(ctx.scene, spp) if chosen is not None else None
+    if found is None:
+        return None
+    rows = [SettingScore(**row) for row in found.pop("candidates")]
+    return Settings(**found, candidates=rows or None)
 
 
 def _renders(ctx, name, params, spp, k, block, timed=False) -> stacks.Stack:
