@@ -109,6 +109,34 @@ def set_weights(n: int, length_scale: float, noise: float, prior_mean: str, mapp
                     if sets > 1 else 0.0) for s in range(sets)]
 
 
+def calibration_factor(values: np.ndarray, truth: np.ndarray, tables: list[Weights]) -> float:
+    """κ that makes the posterior variance predict, on the held-out set, the
+    part of a pixel's error that spp does not average away.
+
+    Per shading point the renderer predicts p = c_s·σ̂², σ̂² from its N
+    values by moments (gp_quadrature.Weights: error factor c, amplitude
+    divisor); per normal that part is b², the squared mean of the shading
+    points' errors (held_out_errors). κ = Σ b²/I² ÷ Σ mean(p)/I² over the
+    normals; 1 where the posterior variance is 0 everywhere. (The part that
+    does average away the renderer measures itself: the spread of a pixel's
+    camera samples.)"""
+    values, truth = np.asarray(values, np.float64), np.asarray(truth, np.float64)
+    keep = truth > 1e-6 * truth.max()
+    y, t = values[keep], truth[keep]
+    k, n = y.shape[1], y.shape[2]
+    which = np.arange(k) % len(tables)
+    a = np.array([w.weights for w in tables])[which]
+    c = np.array([w.error_factor / w.amplitude_divisor for w in tables])[which]
+    b = (np.einsum("mkn,kn->mk", y, a) - t[:, None]).mean(axis=1)
+    if tables[0].prior_mean == "constant":
+        spread = np.sum(np.square(y - y.mean(axis=2, keepdims=True)), axis=2)
+    else:
+        spread = np.sum(np.square(y), axis=2)
+    predicted = np.mean(c * spread, axis=1)
+    denominator = float(np.sum(predicted / t ** 2))
+    return float(np.sum(b ** 2 / t ** 2) / denominator) if denominator > 0 else 1.0
+
+
 @dataclass(frozen=True)
 class Candidate:
     mapping: str
@@ -126,6 +154,8 @@ class Choice:
     length_scale: float
     relmse: float
     candidates: tuple[Candidate, ...]
+    #: calibration_factor of the choice: what its posterior variance is scaled by
+    calibration: float = 1.0
 
 
 #: How many standard errors a candidate must beat the safe one by (the
@@ -179,4 +209,8 @@ def choose(values: dict, truth: np.ndarray, n: int, noises=NOISES, length_scales
                          d.mean() <= SIGNIFICANCE * d.std(ddof=1) / np.sqrt(len(d))):
         best = safe
     c = rows[best]
-    return Choice(c.mapping, c.noise, c.length_scale, c.relmse, tuple(rows))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        tables = set_weights(n, c.length_scale, c.noise, prior_mean, c.mapping, sets)
+    return Choice(c.mapping, c.noise, c.length_scale, c.relmse, tuple(rows),
+                  calibration_factor(values[c.mapping], truth, tables))

@@ -84,7 +84,10 @@ def _settings(q, colours: dict) -> str:
     st = q.settings
     text = (f"<p>{swatch(q.name, colours)} settings: {html.escape(st.mapping)} nodes, "
             f"σ_n²/σ² = {st.noise:g}, ℓ = {st.length_scale:.3g} "
-            f"({html.escape(st.source)}).")
+            f"({html.escape(st.source)})"
+            + (f"; posterior variance × {st.calibration:.3g}, the factor that makes it "
+               "predict the held-out errors spp does not average away"
+               if st.calibration != 1.0 else "") + ".")
     if not st.candidates:
         return text + "</p>"
     return (text + " Each candidate is scored by the relative squared error a pixel of "

@@ -63,6 +63,8 @@ class Settings:
     noise: float
     length_scale: float
     spp: int                     # the pixel's sample count they were chosen for
+    #: what the posterior variance is scaled by (held-out calibration; 1: none)
+    calibration: float = 1.0
     candidates: list[SettingScore] | None = optional()
 
 
