@@ -98,7 +98,7 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
     of 0.001, 0.1 and 10; both mappings) is scored by the relative squared
     error a pixel of the render's spp would get on known integrals, the
     scene's environment map integrated against cos θ/π about the normals
-    of the surfaces the camera sees at 64 film positions (exactly, by the
+    of 64 surface points the camera sees (exactly, by the
     map's own importance sampling), every set at evenly spaced turns. The
     least error wins where it beats the safe candidate (largest σ_n² and ℓ:
     nearly equal weights) by more than two standard errors of the paired

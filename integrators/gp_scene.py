@@ -90,9 +90,11 @@ DEFAULT_SETS = 16
 
 def held_out_normals(scene, m: int = HELD_OUT_NORMALS) -> np.ndarray:
     """The shading normals, turned towards the camera, of the surfaces seen
-    through a √m × √m grid of film positions of the first sensor; a
-    Fibonacci sphere of m directions where fewer than m/8 rays hit a surface."""
-    side = int(round(m ** 0.5))
+    through a 4√m × 4√m grid of film positions of the first sensor, m of
+    them evenly spaced in the grid's order where more rays hit (a small
+    object in view still gives m); a Fibonacci sphere of m directions where
+    fewer than m/8 rays hit a surface."""
+    side = 4 * int(round(m ** 0.5))
     g = (np.arange(side) + 0.5) / side
     x, y = [a.ravel() for a in np.meshgrid(g, g)]
     sensor = scene.sensors()[0]
@@ -115,6 +117,8 @@ def held_out_normals(scene, m: int = HELD_OUT_NORMALS) -> np.ndarray:
                               np.array(ray.d, dtype=float).ravel()))
     if len(found) < max(1, m // 8):
         return sphere_directions(m)
+    if len(found) > m:
+        found = [found[i] for i in np.linspace(0, len(found) - 1, m).round().astype(int)]
     n = np.array([a for a, _ in found])
     d = np.array([b for _, b in found])
     n *= np.where(np.sum(n * d, axis=1) > 0, -1.0, 1.0)[:, None]
