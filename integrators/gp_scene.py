@@ -180,6 +180,22 @@ def likelihood_length_scale(scene, noise: float) -> float:
     return _fitted[key]
 
 
+#: (view fingerprint, N, mappings, sets) → (truth, values): what every spp
+#: shares; the last few only (a table of N = 256 holds 8 MB per mapping).
+_held_out_cache: dict = {}
+HELD_OUT_KEPT = 4
+
+
+def _held_out(env, view: str, normals, n: int, mappings: tuple, sets: int):
+    key = (view, n, mappings, sets)
+    if key not in _held_out_cache:
+        while len(_held_out_cache) >= HELD_OUT_KEPT:
+            _held_out_cache.pop(next(iter(_held_out_cache)))
+        _held_out_cache[key] = (held_out_truth(env, normals),
+                                {m: held_out_values(env, normals, n, m, sets) for m in mappings})
+    return _held_out_cache[key]
+
+
 def choose_hyperparameters(scene, n: int, length_scale, noise, mapping,
                            prior_mean: str = "constant", sets: int = DEFAULT_SETS,
                            spp: int = 1):
@@ -195,14 +211,12 @@ def choose_hyperparameters(scene, n: int, length_scale, noise, mapping,
     if np.ptp(y) <= 1e-6 * max(float(np.abs(y).max()), 1e-30):    # (float32 texels)
         return None, "default (the environment is constant: nothing to choose by)"
     normals = held_out_normals(scene)
-    key = (hashlib.sha1(np.ascontiguousarray(y, np.float64).tobytes()
-                        + np.round(normals, 6).tobytes()).hexdigest(),
-           n, length_scale, noise, mapping, prior_mean, sets, spp)
+    view = hashlib.sha1(np.ascontiguousarray(y, np.float64).tobytes()
+                        + np.round(normals, 6).tobytes()).hexdigest()
+    key = (view, n, length_scale, noise, mapping, prior_mean, sets, spp)
     if key not in _chosen:
-        env = scene.environment()
-        truth = held_out_truth(env, normals)
         mappings = tuple(gp_quadrature.MAPPINGS) if mapping == "auto" else (mapping,)
-        values = {m: held_out_values(env, normals, n, m, sets) for m in mappings}
+        truth, values = _held_out(scene.environment(), view, normals, n, mappings, sets)
         _chosen[key] = gp_settings.choose(
             values, truth, n,
             noises=gp_settings.NOISES if noise == "auto" else (noise,),
