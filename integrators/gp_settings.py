@@ -123,7 +123,7 @@ def calibration_factor(values: np.ndarray, truth: np.ndarray, tables: list[Weigh
     values, truth = np.asarray(values, np.float64), np.asarray(truth, np.float64)
     keep = truth > 1e-6 * truth.max()
     y, t = values[keep], truth[keep]
-    k, n = y.shape[1], y.shape[2]
+    k = y.shape[1]
     which = np.arange(k) % len(tables)
     a = np.array([w.weights for w in tables])[which]
     c = np.array([w.error_factor / w.amplitude_divisor for w in tables])[which]
