@@ -70,7 +70,9 @@ def _quadrature_section(scene: SceneResult, colours: dict) -> str:
 <h3>Quadrature: N directions per shading point</h3>
 <p>At {q0.spp} camera spp, {q0.renders} renders each. <b>Equal rays</b>: relMSE of N
 directions × {q0.spp} spp over that of <code>cosine_hemisphere</code> at N·{q0.spp} spp
-(below 1: the point set wins), 95 % interval. <b>Calibration</b>: per pixel, the measured
+(below 1: the point set wins), 95 % interval. The N directions of a shading point share
+one camera sample: where a pixel's own content varies (a texture, an edge), N·spp camera
+samples of the baseline also antialias it, and the ratio says so. <b>Calibration</b>: per pixel, the measured
 RMSE over the predicted posterior std (the reference's variance added); calibrated when the
 median lies in [0.5, 2] (above: over-confident); outside [0.1, 3] the check fails.</p>
 <table><tr><th>estimator</th><th>N</th><th>relMSE ÷ cosine at equal rays</th>
