@@ -181,6 +181,8 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
                              "variance from; use directions >= 2 or prior_mean 'zero'")
         #: What was asked for ('auto', 'likelihood' or a value), per setting.
         self.asked = {"length_scale": ell, "noise": noise, "mapping": mapping}
+        #: Whether any setting is chosen for the scene rather than given.
+        self.chooses = any(v in ("auto", "likelihood") for v in self.asked.values())
         #: How the settings in use were chosen; the held-out scores (a
         #: gp_settings.Choice) where they were chosen by them.
         self.source, self.choice = "given", None
@@ -208,8 +210,7 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
         # variance is calibrated on the same held-out integrals.
         self.choice, how = choose_hyperparameters(
             scene, self.directions, ell, noise, mapping, self.prior_mean, self.sets, spp)
-        chosen = any(v in ("auto", "likelihood") for v in self.asked.values())
-        self.source = how if chosen else "given"
+        self.source = how if self.chooses else "given"
         c = self.choice
         if c is None:
             self._use(ell if isinstance(ell, (int, float)) else DEFAULT_LENGTH_SCALE,
@@ -242,7 +243,7 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
 
     def _use_table(self):
         with warnings.catch_warnings():
-            if any(v in ("auto", "likelihood") for v in self.asked.values()):
+            if self.chooses:
                 # (a chosen setting's extra jitter is part of what was scored)
                 warnings.simplefilter("ignore", RuntimeWarning)
             self.tables = gp_settings.set_weights(self.directions, self.length_scale,
@@ -270,8 +271,7 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
     def direction(self, j, drawn, si, bsdf, ctx, active):
         turn, which = drawn
         # u shifted by gp_quadrature.set_shift(which, sets, N)
-        shift = ((mi.Float(which) + 0.5) / self.sets - 0.5) / self.directions \
-            if self.sets > 1 else mi.Float(0.0)
+        shift = ((mi.Float(which) + 0.5) / self.sets - 0.5) / self.directions
         w_up = MAPPINGS[self.mapping][0](fibonacci_point(j, self.directions,
                                                          mi.Point2f(shift, turn)))
         wo = mi.Vector3f(w_up.x, w_up.y, dr.mulsign(w_up.z, si.wi.z))

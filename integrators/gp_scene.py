@@ -12,22 +12,13 @@ import mitsuba as mi
 import numpy as np
 
 from . import gp_quadrature, gp_settings
-from .gp_quadrature import GOLDEN
+from .gp_settings import sphere_directions
 
 #: The settings ``auto`` stands for where the scene has no environment map,
 #: or a constant one, to choose them by.
 DEFAULT_LENGTH_SCALE, DEFAULT_NOISE, DEFAULT_MAPPING = 0.5, 1e-3, "cosine"
 #: Environment samples that fingerprint a map (and that ``likelihood`` fits ℓ to).
 FIT_SAMPLES = 512
-
-
-def sphere_directions(m: int) -> np.ndarray:
-    """m near-uniform directions on the whole sphere (a Fibonacci sphere)."""
-    j = np.arange(m)
-    z = 1.0 - (2.0 * j + 1.0) / m
-    phi = 2.0 * np.pi * np.mod(j / GOLDEN, 1.0)
-    r = np.sqrt(1.0 - z * z)
-    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
 
 
 def environment_values(env, d: np.ndarray) -> np.ndarray:
@@ -59,6 +50,18 @@ def environment_samples(scene, m: int = FIT_SAMPLES):
         return None
     d = sphere_directions(m)
     return d, environment_values(env, d)
+
+
+def informative_samples(scene):
+    """(environment_samples, None) where the scene's map varies; (None, why
+    not) where it has none or a constant one (nothing to fit or score)."""
+    samples = environment_samples(scene)
+    if samples is None:
+        return None, "no environment map"
+    y = samples[1]
+    if np.ptp(y) <= 1e-6 * max(float(np.abs(y).max()), 1e-30):    # (float32 texels)
+        return None, "the environment is constant: nothing to choose by"
+    return samples, None
 
 
 def _visible(wavelengths):
@@ -168,12 +171,10 @@ def likelihood_length_scale(scene, noise: float) -> float:
     """ℓ by maximum marginal likelihood over FIT_SAMPLES directions of the
     scene's environment (the lighting's own scale, not the quadrature's);
     DEFAULT_LENGTH_SCALE without a map or for a constant one."""
-    samples = environment_samples(scene)
+    samples, _ = informative_samples(scene)
     if samples is None:
         return DEFAULT_LENGTH_SCALE
     d, y = samples
-    if np.ptp(y) <= 1e-6 * max(float(np.abs(y).max()), 1e-30):    # (float32 texels)
-        return DEFAULT_LENGTH_SCALE
     key = (hashlib.sha1(np.ascontiguousarray(y, np.float64).tobytes()).hexdigest(), noise)
     if key not in _fitted:
         _fitted[key] = gp_quadrature.fit(d, y, noise).length_scale
@@ -204,12 +205,10 @@ def choose_hyperparameters(scene, n: int, length_scale, noise, mapping,
     (gp_settings.choose); cached per map, N, spp and fixed settings.
     Returns (Choice or None, how it was chosen): None where the scene has no
     environment or a constant one (nothing to score)."""
-    samples = environment_samples(scene)
+    samples, why = informative_samples(scene)
     if samples is None:
-        return None, "default (no environment map)"
-    d, y = samples
-    if np.ptp(y) <= 1e-6 * max(float(np.abs(y).max()), 1e-30):    # (float32 texels)
-        return None, "default (the environment is constant: nothing to choose by)"
+        return None, f"default ({why})"
+    _, y = samples
     normals = held_out_normals(scene)
     view = hashlib.sha1(np.ascontiguousarray(y, np.float64).tobytes()
                         + np.round(normals, 6).tobytes()).hexdigest()

@@ -40,6 +40,15 @@ def length_scale_grid(n: int) -> np.ndarray:
     return LENGTH_SCALES[LENGTH_SCALES >= length_scale_floor(n)]
 
 
+def sphere_directions(m: int) -> np.ndarray:
+    """m near-uniform directions on the whole sphere (a Fibonacci sphere)."""
+    j = np.arange(m)
+    z = 1.0 - (2.0 * j + 1.0) / m
+    phi = 2.0 * np.pi * np.mod(j / GOLDEN, 1.0)
+    r = np.sqrt(1.0 - z * z)
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
 def tangent_frames(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Two unit tangents (s, t) of each unit normal, rows of (M, 3) (Duff et
     al. 2017: continuous except at n = −z)."""
@@ -105,8 +114,8 @@ def held_out_relmse(values: np.ndarray, truth: np.ndarray, a: np.ndarray,
 def set_weights(n: int, length_scale: float, noise: float, prior_mean: str, mapping: str,
                 sets: int) -> list[Weights]:
     """:func:`weights` of each of ``sets`` shifted sets (:func:`set_shift`)."""
-    return [weights(n, length_scale, noise, prior_mean, mapping, set_shift(s, sets, n)
-                    if sets > 1 else 0.0) for s in range(sets)]
+    return [weights(n, length_scale, noise, prior_mean, mapping, set_shift(s, sets, n))
+            for s in range(sets)]
 
 
 def calibration_factor(values: np.ndarray, truth: np.ndarray, tables: list[Weights]) -> float:

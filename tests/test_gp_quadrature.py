@@ -201,10 +201,7 @@ def test_fit_of_constant_values_has_no_information():
 def _held_out(f, n: int, mapping: str, sets: int = 1, turns: int = 8, m: int = 24):
     """Node values of f at held_out_directions about m normals, and the
     integrals of f about them by the brute-force rule."""
-    j = np.arange(m)
-    z = 1 - (2 * j + 1) / m
-    phi = 2 * np.pi * np.mod(j / gq.GOLDEN, 1)
-    normals = np.stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z], 1)
+    normals = gs.sphere_directions(m)
     grid, w = product_grid(64, 96)
     s, t = gs.tangent_frames(normals)
     truth = np.array([w @ f(grid[:, :1] * s[i] + grid[:, 1:2] * t[i] + grid[:, 2:] * normals[i])
