@@ -26,7 +26,7 @@ def test_every_estimator_declares_its_facts(llvm):
     names = registry.names()
     assert names == ["uniform_hemisphere", "cosine_hemisphere", "bsdf_sampling",
                      "emitter_sampling", "mis", "guided_path", "fibonacci_hemisphere",
-                     "bayesian_hemisphere"]
+                     "bayesian_hemisphere", "bayesian_importance"]
     colours = [registry.facts(n).colour for n in names] + [registry.PATH.colour]
     assert all(re.fullmatch(r"#[0-9a-f]{6}", c) for c in colours)
     assert len(set(colours)) == len(colours), "two estimators share a colour"
@@ -34,12 +34,13 @@ def test_every_estimator_declares_its_facts(llvm):
         f = registry.facts(n)
         assert f.display_name and f.display_name != n
         assert set(f.reachable) <= set(KINDS) and "medium" in f.unreachable
-    # the estimators of N directions: direct light only; the quadrature is
-    # biased by design and refuses glossy lobes
-    assert [registry.facts(n).depths for n in names] == [None] * 6 + [(1, 2)] * 2
-    assert [registry.facts(n).unbiased for n in names] == [True] * 7 + [False]
+    # the estimators of N directions: direct light only; the GP quadrature
+    # is biased by design and refuses glossy lobes (the lattice cubature is
+    # unbiased: equal weights, randomly shifted)
+    assert [registry.facts(n).depths for n in names] == [None] * 6 + [(1, 2)] * 3
+    assert [registry.facts(n).unbiased for n in names] == [True] * 7 + [False, True]
     assert [("glossy_bsdf" in registry.facts(n).unreachable) for n in names] == \
-        [False] * 7 + [True]
+        [False] * 7 + [True, False]
 
 
 def test_largest_direction_pdfs_are_the_strategies_own(llvm):
