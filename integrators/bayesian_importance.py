@@ -146,6 +146,7 @@ class BayesianImportanceIntegrator(DirectionSetEstimator):
     colour = "#d6616b"
     max_direction_pdf = None                   # the light's set finds a sun
     listing_order = 75
+    equal_rays_baseline = "emitter_sampling"   # (both sample the light)
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)

@@ -78,6 +78,8 @@ class DirectionSetEstimator(IlluminationEstimator):
 
     #: (max_depth values it defines, read by the registry and the profiles)
     depths = DEPTHS
+    #: The Monte Carlo estimator it is compared with at equal rays.
+    equal_rays_baseline = "cosine_hemisphere"
 
     def __init__(self, props: mi.Properties):
         if "max_depth" not in props:

@@ -18,7 +18,11 @@ Each plugin class declares its facts as class attributes beside its strategy
 * ``unbiased`` — False for an estimator biased by design (a quadrature such
   as bayesian_hemisphere): the suite then measures its bias instead of
   testing for none;
-* ``diffuse_only`` — it refuses glossy lobes too (``glossy_bsdf``).
+* ``diffuse_only`` — it refuses glossy lobes too (``glossy_bsdf``);
+* ``equal_rays_baseline`` — for an estimator of N directions per shading
+  point, the Monte Carlo estimator it is compared with at equal rays (the
+  quadrature stage): ``cosine_hemisphere`` unless it samples the light,
+  then ``emitter_sampling``.
 
 :func:`register` (called at the bottom of every plugin file) registers the
 class with Mitsuba for the current variant and records its facts here. Facts
@@ -61,6 +65,7 @@ class Facts:
     depths: tuple[int, ...] | None = None
     unbiased: bool = True
     diffuse_only: bool = False
+    equal_rays_baseline: str = "cosine_hemisphere"
 
     @property
     def reaches(self) -> frozenset:
@@ -93,7 +98,8 @@ def facts_of(cls) -> Facts:
                  frozenset(cls.reachable), cls.max_direction_pdf, cls.listing_order,
                  # (classes not derived from IlluminationEstimator may omit these)
                  depths=getattr(cls, "depths", None), unbiased=getattr(cls, "unbiased", True),
-                 diffuse_only=getattr(cls, "diffuse_only", False))
+                 diffuse_only=getattr(cls, "diffuse_only", False),
+                 equal_rays_baseline=getattr(cls, "equal_rays_baseline", "cosine_hemisphere"))
 
 
 def register(cls) -> type:
@@ -138,7 +144,7 @@ def facts(name: str) -> Facts:
 #: stays neutral (its name, a spare colour, reaches every kind of content,
 #: no pdf bound, any max_depth, unbiased).
 DECLARABLE = ("display_name", "colour", "reachable", "max_direction_pdf", "listing_order",
-              "depths", "unbiased", "diffuse_only")
+              "depths", "unbiased", "diffuse_only", "equal_rays_baseline")
 
 #: name → Facts declared by a user's integrator class (not one of ours).
 _learned: dict[str, Facts] = {}
@@ -166,7 +172,9 @@ def learn(name: str, cls) -> Facts | None:
                   declared.get("listing_order", 500), ours=False,
                   depths=tuple(depths) if depths is not None else None,
                   unbiased=bool(declared.get("unbiased", True)),
-                  diffuse_only=bool(declared.get("diffuse_only", False)))
+                  diffuse_only=bool(declared.get("diffuse_only", False)),
+                  equal_rays_baseline=str(declared.get("equal_rays_baseline",
+                                                       "cosine_hemisphere")))
     _learned[name] = found
     return found
 

@@ -232,3 +232,39 @@ def test_without_a_map_every_direction_follows_the_bsdf(llvm):
     est = renders.make_integrator(NAME, {"directions": 16, "max_depth": 2})
     est.check_scene(scene)
     assert (est.n_light, est.n_bsdf) == (0, 16)
+
+
+# ------------------------- In the quadrature stage ----------------------------
+
+def test_the_quadrature_stage_compares_it_with_emitter_sampling(llvm, tmp_path):
+    """The scene-comparison stages on the lone sphere under sunrise: the
+    equal-ray pair is against its facts' baseline, emitter_sampling (both
+    sample the light), and the point set wins it; the report names the
+    baseline per row. fibonacci_hemisphere keeps cosine_hemisphere."""
+    from mcillum.integrators import registry
+    from mcillum.validation import pipeline
+    from mcillum.validation.plan import profiles
+    from mcillum.validation.report import scenes as report_scenes
+    from mcillum.validation.stages import common
+    from mcillum.validation.stages.context import Context, Run
+
+    assert registry.facts(NAME).equal_rays_baseline == "emitter_sampling"
+    assert registry.facts("fibonacci_hemisphere").equal_rays_baseline == "cosine_hemisphere"
+    profile = profiles.Profile(name="quick", runs=(), reference_max_seconds=30.0)
+    plan = profiles.SceneRun(scene="lone_sphere", res=8, ladder=(4,), renders=4, max_depth=2,
+                             defines={"envmap": "sunrise"})
+    ctx = Context(Run(profile, "llvm_ad_rgb", str(tmp_path / "cache"), str(tmp_path / "out")),
+                  plan, "lone_sphere", [NAME, "path"])
+    common.load(ctx)
+    common.choose_estimators(ctx)
+    for stage in (pipeline.scene.render_ladder, common.build_reference,
+                  pipeline.quadrature.measure):
+        stage(ctx)
+    rays = ctx.quadrature[NAME].equal_rays
+    assert rays.baseline == "emitter_sampling" and rays.baseline_spp == 64 * 4
+    assert rays.ratio_high < 1.0, rays
+
+    class _Scene:
+        quadrature = [ctx.quadrature[NAME]]
+    html = report_scenes._quadrature_section(_Scene, {NAME: "#d6616b"})
+    assert "<code>emitter_sampling</code>" in html

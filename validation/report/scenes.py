@@ -42,19 +42,20 @@ def _notes(scene: SceneResult) -> str:
 
 
 def _quadrature_section(scene: SceneResult, colours: dict) -> str:
-    """Estimators of N directions: equal rays against cosine_hemisphere, bias
+    """Estimators of N directions: equal rays against their baseline, bias
     against N, calibration of the posterior std (quadrature.py)."""
     rows, bias_rows = [], []
     for q in scene.quadrature:
         r, c = q.equal_rays, q.calibration
         rays = (f"{r.ratio:.3g} [{r.ratio_low:.3g}, {r.ratio_high:.3g}]"
                 f" ({r.seconds / r.baseline_seconds:.2f}× the time)") if r else "—"
+        against = f"<code>{html.escape(r.baseline)}</code>" if r else "—"
         good = c is not None and (c.verdict == "calibrated" or c.verdict.startswith("exact"))
         cal = (f"<span class={'ok' if good else 'warn'}>{html.escape(c.verdict)}</span>: median "
                f"{fmt(c.median, '.2f')} ({fmt(c.q25, '.2f')}–{fmt(c.q75, '.2f')})"
                ) if c else "—"
         rows.append(f"<tr><td>{swatch(q.name, colours)}</td><td>{q.directions}</td>"
-                    f"<td>{rays}</td><td>{cal}</td></tr>")
+                    f"<td>{against}</td><td>{rays}</td><td>{cal}</td></tr>")
         for b in q.bias or []:
             bias_rows.append(f"<tr><td>{swatch(q.name, colours)}</td><td>{b.directions}</td>"
                              f"<td>{100 * b.rms_bias:.2f} % ± {100 * b.rms_bias_se:.2f} %</td>"
@@ -69,13 +70,14 @@ def _quadrature_section(scene: SceneResult, colours: dict) -> str:
     return f"""
 <h3>Quadrature: N directions per shading point</h3>
 <p>At {q0.spp} camera spp, {q0.renders} renders each. <b>Equal rays</b>: relMSE of N
-directions × {q0.spp} spp over that of <code>cosine_hemisphere</code> at N·{q0.spp} spp
-(below 1: the point set wins), 95 % interval. The N directions of a shading point share
+directions × {q0.spp} spp over that of its baseline at N·{q0.spp} spp (<code>cosine_hemisphere</code>;
+<code>emitter_sampling</code> for one that samples the light; below 1: the point set wins),
+95 % interval. The N directions of a shading point share
 one camera sample: where a pixel's own content varies (a texture, an edge), N·spp camera
 samples of the baseline also antialias it, and the ratio says so. <b>Calibration</b>: per pixel, the measured
 RMSE over the predicted posterior std (the reference's variance added); calibrated when the
 median lies in [0.5, 2] (above: over-confident); outside [0.1, 3] the check fails.</p>
-<table><tr><th>estimator</th><th>N</th><th>relMSE ÷ cosine at equal rays</th>
+<table><tr><th>estimator</th><th>N</th><th>baseline</th><th>relMSE ÷ baseline at equal rays</th>
 <th>posterior std</th></tr>{''.join(rows)}</table>
 {bias}{settings}"""
 

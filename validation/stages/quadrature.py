@@ -1,9 +1,11 @@
 """The quadrature stage: what an estimator of N directions per shading point
-(fibonacci_hemisphere, bayesian_hemisphere; registry facts ``depths``) is
-measured on beyond the spp ladder, at the ladder's top rung and resolution.
+(fibonacci_hemisphere, bayesian_hemisphere, bayesian_importance; registry
+facts ``depths``) is measured on beyond the spp ladder, at the ladder's top
+rung and resolution.
 
 * **Equal rays.** K renders of N directions × spp camera samples against K
-  renders of ``cosine_hemisphere`` at N·spp spp: the ratio of their relMSE
+  renders of its baseline (facts ``equal_rays_baseline``: cosine_hemisphere,
+  or emitter_sampling for one that samples the light) at N·spp spp: the ratio of their relMSE
   (each less the reference's own relative variance), with a 95 % interval
   from the spread of the per-render errors (delta method on the log).
 * **Bias against N** (estimators biased by design, facts ``unbiased``
@@ -45,8 +47,6 @@ BIAS_DIRECTIONS = (16, 256)
 #: summing 256 samples per pixel err by ~1e-5 (the full profile's furnace
 #: read as infinitely over-confident at 1e-5).
 EXACT = 1e-4
-#: The Monte Carlo estimator the sets are compared with at equal rays.
-BASELINE = "cosine_hemisphere"
 
 
 def is_point_set(name: str) -> bool:
@@ -74,9 +74,12 @@ def measure(ctx) -> None:
         block = 2 * i
         # (the equal-ray pair's median seconds are reported: timed, executors.py)
         own = _renders(ctx, name, {}, spp, k, block, timed=True)
-        baseline = (_renders(ctx, BASELINE, {}, spp * n, k, block + 1, timed=True)
-                    if BASELINE in registry.names() else None)
-        rays = _equal_rays(own, baseline, ref, n, spp) if baseline is not None else None
+        # (the Monte Carlo estimator its registry facts name)
+        against = registry.facts(name).equal_rays_baseline
+        baseline = (_renders(ctx, against, {}, spp * n, k, block + 1, timed=True)
+                    if against in registry.names() else None)
+        rays = (_equal_rays(own, baseline, against, ref, n, spp)
+                if baseline is not None else None)
         bias, calibration = None, None
         if not registry.facts(name).unbiased:
             bias = [_bias(own, ref, n)]
@@ -120,7 +123,7 @@ def _relmse_less_reference(stack, ref) -> np.ndarray:
     return metrics.per_render_relmse(stack.images, ref.mean) - noise
 
 
-def _equal_rays(own, baseline, ref, n, spp) -> EqualRays:
+def _equal_rays(own, baseline, against: str, ref, n, spp) -> EqualRays:
     a, b = _relmse_less_reference(own, ref), _relmse_less_reference(baseline, ref)
     ratio = float(a.mean() / b.mean()) if b.mean() > 0 else float("nan")
     # delta method on log(ā / b̄): var ≈ s_a²/(K ā²) + s_b²/(K b̄²)
@@ -130,7 +133,7 @@ def _equal_rays(own, baseline, ref, n, spp) -> EqualRays:
     low, high = (ratio * math.exp(-1.96 * s), ratio * math.exp(1.96 * s)) \
         if np.isfinite(s) and ratio > 0 else (float("nan"), float("nan"))
     seconds, seconds_b = float(np.median(own.seconds)), float(np.median(baseline.seconds))
-    return EqualRays(baseline=BASELINE, baseline_spp=n * spp, relmse=float(a.mean()),
+    return EqualRays(baseline=against, baseline_spp=n * spp, relmse=float(a.mean()),
                      baseline_relmse=float(b.mean()), ratio=ratio, ratio_low=low, ratio_high=high,
                      seconds=seconds, baseline_seconds=seconds_b)
 
