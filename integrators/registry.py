@@ -144,7 +144,7 @@ def facts(name: str) -> Facts:
 #: stays neutral (its name, a spare colour, reaches every kind of content,
 #: no pdf bound, any max_depth, unbiased).
 DECLARABLE = ("display_name", "colour", "reachable", "max_direction_pdf", "listing_order",
-              "depths", "unbiased", "diffuse_only", "equal_rays_baseline")
+              "depths", "unbiased", "diffuse_only")
 
 #: name → Facts declared by a user's integrator class (not one of ours).
 _learned: dict[str, Facts] = {}
@@ -172,9 +172,7 @@ def learn(name: str, cls) -> Facts | None:
                   declared.get("listing_order", 500), ours=False,
                   depths=tuple(depths) if depths is not None else None,
                   unbiased=bool(declared.get("unbiased", True)),
-                  diffuse_only=bool(declared.get("diffuse_only", False)),
-                  equal_rays_baseline=str(declared.get("equal_rays_baseline",
-                                                       "cosine_hemisphere")))
+                  diffuse_only=bool(declared.get("diffuse_only", False)))
     _learned[name] = found
     return found
 
