@@ -56,6 +56,10 @@ def lattice_generator(n: int) -> int:
     return best
 
 
+#: The largest n whose j·g (both < n) fits in 32 bits.
+MAX_DIRECTIONS = 65535
+
+
 def lattice_point(j, n, g, shift: mi.Point2f) -> mi.Point2f:
     """Node j of the n-point lattice with generator g, shifted (Cranley–
     Patterson) by ``shift`` ~ U[0,1)²: u_j = frac((j, j g mod n)/n + ξ)."""
@@ -156,6 +160,10 @@ class BayesianImportanceIntegrator(DirectionSetEstimator):
             raise ValueError(f"{self.plugin_name}: light_fraction must be a number in [0, 1] "
                              f"(<float name=\"light_fraction\" value=\"0.5\"/>), got {share!r}")
         self.light_fraction = float(share)
+        if self.directions > MAX_DIRECTIONS:
+            raise ValueError(f"{self.plugin_name}: directions = {self.directions} is more than "
+                             f"{MAX_DIRECTIONS}, the largest lattice whose j·g fits 32 bits; "
+                             "use fewer directions and more samples per pixel")
         self._use_split(True)
 
     def _use_split(self, has_light: bool) -> None:

@@ -199,6 +199,7 @@ def test_beats_emitter_sampling_at_equal_rays_under_a_sun(llvm, envmap):
     ({"light_fraction": "half"}, "light_fraction must be a number in"),
     ({"directions": 0}, "directions must be an integer"),
     ({"max_depth": 3}, "max_depth = 3 is not supported"),
+    ({"directions": 65536}, "the largest lattice whose j·g fits 32 bits"),
 ])
 def test_bad_parameters_are_refused(llvm, props, match):
     with pytest.raises(Exception, match=match):
