@@ -1,7 +1,7 @@
 """Bayesian cubature of direct illumination on an importance-sampled lattice:
-N directions per shading point drawn through the environment map's and the
-BSDF's own sampling from a randomly shifted rank-1 lattice, weighted as a
-Bayesian cubature with a shift-invariant kernel weights them (all equal)."""
+N directions per shading point, drawn from randomly shifted rank-1 lattices
+through the environment map's and the BSDF's own sampling, and weighted as
+Bayesian cubature with a shift-invariant kernel weights a lattice (equally)."""
 
 from __future__ import annotations
 
@@ -39,8 +39,9 @@ from .direction_set import DirectionSetEstimator, frac
 @functools.lru_cache(maxsize=64)
 def lattice_generator(n: int) -> int:
     """The g of the n-point rank-1 lattice {(j/n, frac(j g/n))} whose
-    nearest two points lie furthest apart on the torus (g coprime to n; the
-    Fibonacci lattice where n is a Fibonacci number). 1 for n < 3."""
+    nearest two points lie furthest apart on the torus (g coprime to n; for
+    n = 13, 34, 89 the Fibonacci lattice's, for 55 and 144 a wider one).
+    1 for n < 3."""
     if n < 3:
         return 1
     j = np.arange(1, n)
