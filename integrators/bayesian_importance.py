@@ -148,7 +148,7 @@ class BayesianImportanceIntegrator(DirectionSetEstimator):
 
     plugin_name = "bayesian_importance"
     display_name = "Bayesian cubature, importance-sampled lattice"
-    colour = "#d6616b"
+    colour = "#393b79"
     max_direction_pdf = None                   # the light's set finds a sun
     listing_order = 75
     equal_rays_baseline = "emitter_sampling"   # (both sample the light)

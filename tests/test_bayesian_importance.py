@@ -267,7 +267,7 @@ def test_the_quadrature_stage_compares_it_with_emitter_sampling(llvm, tmp_path):
 
     class _Scene:
         quadrature = [ctx.quadrature[NAME]]
-    html = report_scenes._quadrature_section(_Scene, {NAME: "#d6616b"})
+    html = report_scenes._quadrature_section(_Scene, {NAME: "#393b79"})
     assert "<code>emitter_sampling</code>" in html
 
 
