@@ -231,8 +231,14 @@ class BayesianImportanceIntegrator(DirectionSetEstimator):
         return wo, factor, 1.0
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
+        # direction() reads the map from here while the kernel is traced; it is
+        # let go after: an integrator that kept it would keep the scene's
+        # emitter in Dr.Jit's registry, in every later kernel's virtual calls
         self.environment = scene.environment()
-        return super().sample(scene, sampler, ray, medium, active)
+        try:
+            return super().sample(scene, sampler, ray, medium, active)
+        finally:
+            self.environment = None
 
     def to_string(self) -> str:
         return (f"BayesianImportanceIntegrator[directions={self.directions}, "

@@ -292,3 +292,16 @@ def test_beats_fibonacci_on_a_phong_sphere_at_equal_rays(llvm, envmap, exponent)
 
     ratio = relmse(NAME) / relmse("fibonacci_hemisphere")
     assert ratio < 0.7, ratio
+
+
+def test_keeps_no_emitter_after_rendering(llvm):
+    """An integrator that held the scene's map after rendering kept that
+    emitter in Dr.Jit's registry: every later kernel's virtual calls then
+    dispatched over it too, and in the default test group one of them hit
+    Dr.Jit 1.5's duplicated-callable abort ("invalid redefinition of
+    function"). Nothing of the scene stays on the integrator."""
+    scene = lone_sphere(4, envmap="gradient")
+    integ = renders.make_integrator(NAME, {"directions": 4})
+    renders.render(scene, integ, 1)
+    held = [k for k, v in vars(integ).items() if isinstance(v, (mi.Emitter, mi.Scene, mi.Shape))]
+    assert not held, held
