@@ -10,6 +10,7 @@ import mitsuba as mi
 
 from . import gp_settings, registry
 from .direction_set import DirectionSetEstimator
+from .estimator import over_pdf
 from .fibonacci_hemisphere import MAPPINGS, fibonacci_point
 from .gp_scene import (DEFAULT_LENGTH_SCALE, DEFAULT_MAPPING, DEFAULT_NOISE, DEFAULT_SETS,
                        choose_hyperparameters, likelihood_length_scale)
@@ -278,7 +279,7 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
         p = w_up.z * dr.inv_pi              # the measure cos θ / π, whatever the mapping
         # f cos θ / p = ρ for a diffuse BSDF: the GP models L_i, ρ scales it
         f_cos = bsdf.eval(ctx, si, wo, active)
-        factor = dr.select(p > 0, f_cos / dr.select(p > 0, p, 1.0), 0.0)
+        factor = over_pdf(f_cos, p)
         return wo, factor, self._gather(self._a, which * self.directions + j, active)
 
     def finish(self, total, s1, s2, y0, drawn, active):

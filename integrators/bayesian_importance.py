@@ -14,6 +14,7 @@ import numpy as np
 
 from . import registry
 from .direction_set import DirectionSetEstimator, frac
+from .estimator import over_pdf
 
 # ----------------------------- Strategy ---------------------------------
 # The integral is taken in the unit square of each strategy's own sampling
@@ -226,8 +227,7 @@ class BayesianImportanceIntegrator(DirectionSetEstimator):
         p_b = bsdf.pdf(ctx, si, wo, active) if n_b > 0 else mi.Float(0)
         denom = mixture_pdf(mi.Float(n_l), p_l, mi.Float(n_b), p_b)
         f_cos = bsdf.eval(ctx, si, wo, active)             # bsdf.eval includes cos θ
-        # (select the divisor too: scalar variants divide Python floats, which raise)
-        factor = dr.select(drawn_ok & (denom > 0), f_cos / dr.select(denom > 0, denom, 1.0), 0.0)
+        factor = dr.select(drawn_ok, over_pdf(f_cos, denom), 0.0)
         return wo, factor, 1.0
 
     def sample(self, scene, sampler, ray, medium=None, active=True):

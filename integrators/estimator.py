@@ -71,6 +71,12 @@ def _scene_fingerprint(scene) -> tuple:
             tuple(float(x) for x in box.min), tuple(float(x) for x in box.max))
 
 
+def over_pdf(value, pdf):
+    """value / pdf where pdf > 0, else 0: a sample's weight f cos θ / p."""
+    # (select the divisor too: scalar variants divide Python floats, which raise)
+    return dr.select(pdf > 0, value / dr.select(pdf > 0, pdf, 1.0), 0.0)
+
+
 def mis_weight(pdf_a, pdf_b):
     """Power heuristic p_a² / (p_a² + p_b²), 0 where undefined (as `path`)."""
     a, b = dr.square(pdf_a), dr.square(pdf_b)
@@ -197,8 +203,7 @@ class IlluminationEstimator(mi.SamplingIntegrator):
         pdf = self.pdf_local(w_up)
         wo = mi.Vector3f(w_up.x, w_up.y, dr.mulsign(w_up.z, si.wi.z))
         f_cos = bsdf.eval(ctx, si, wo)                  # bsdf.eval includes cos θ
-        # (select the divisor too: scalar variants divide Python floats, which raise)
-        weight = dr.select(pdf > 0, f_cos / dr.select(pdf > 0, pdf, 1.0), 0)
+        weight = over_pdf(f_cos, pdf)
         return wo, weight, pdf, mi.Bool(False), mi.Float(1)
 
     # ----------------- Scene validation and pass splitting ----------------

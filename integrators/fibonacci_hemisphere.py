@@ -8,6 +8,7 @@ import mitsuba as mi
 
 from . import registry
 from .direction_set import DirectionSetEstimator, frac
+from .estimator import over_pdf
 
 #: Φ, the golden ratio; 1/Φ = Φ − 1 spreads v_j = frac(j/Φ) evenly.
 GOLDEN = (1.0 + 5.0 ** 0.5) / 2.0
@@ -198,8 +199,7 @@ class FibonacciHemisphereIntegrator(DirectionSetEstimator):
         p_b = dr.select(n_b > 0, bsdf.pdf(ctx_b, si, wo, active & (n_b > 0)), 0.0)
         denom = mi.Float(n_a) * p_a + mi.Float(n_b) * p_b
         f_cos = bsdf.eval(ctx, si, wo, active)             # bsdf.eval includes cos θ
-        # (select the divisor too: scalar variants divide Python floats, which raise)
-        factor = dr.select(kept & (denom > 0), f_cos / dr.select(denom > 0, denom, 1.0), 0.0)
+        factor = dr.select(kept, over_pdf(f_cos, denom), 0.0)
         return wo, factor, 1.0
 
     def to_string(self) -> str:

@@ -16,7 +16,7 @@ import numpy as np
 from . import registry
 from .bsdf_sampling import sample_bsdf_direction
 from .emitter_sampling import emitter_direction_pdf, sample_emitter_direction
-from .estimator import IlluminationEstimator
+from .estimator import IlluminationEstimator, over_pdf
 
 # ----------------------------- Strategy ---------------------------------
 # The learned part is a piecewise-constant density on the unit square, warped
@@ -613,7 +613,7 @@ class GuidedPathIntegrator(IlluminationEstimator):
         p = alpha * p_bsdf + (1 - alpha) * self.guide_density(si, base, si.to_world(wo))
         # (α = 1 is BSDF sampling as it is, delta lobes included)
         plain = alpha >= 1
-        weight = dr.select(plain, w_b, dr.select(p > 0, f_cos / dr.select(p > 0, p, 1.0), 0))
+        weight = dr.select(plain, w_b, over_pdf(f_cos, p))
         pdf = dr.select(plain, pdf_b, p)
         delta = plain & delta_b
         eta = dr.select(from_bsdf, eta_b, 1.0)
