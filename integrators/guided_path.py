@@ -122,18 +122,21 @@ def voxel_of(p: mi.Point3f, grid) -> mi.UInt32:
 
 
 TRAIN_DEPTH = 8            # vertices of a training path that are recorded
-PASSES = 2                 # training passes at most (each traces the kernel again)
+PASSES = 2                 # training passes at most, by default (each traces the kernel)
 MAX_RECORDS = 1 << 22      # records per training render (longer passes split)
 FLOOR = 0.1                # uniform share of every learned pmf
+MIN_TRAINED = 128          # records a node needs to learn its own pmf
+MIN_SPLIT = 128            # records a directional cell needs to be refined
+SHRINK = 64                # records' worth a refined cell's mean is pulled to its parent's
 MAX_TREE_DEPTH = 3 * 5    # (a leaf of one voxel: GRID = 2^5)
 
 
-def training_passes(spp: int, fraction: float) -> list[int]:
+def training_passes(spp: int, fraction: float, passes: int = PASSES) -> list[int]:
     """spp of the training passes: ``fraction`` of ``spp`` (leaving at least
-    one sample for the image) in at most PASSES passes that double, the
+    one sample for the image) in at most ``passes`` passes that double, the
     first at least 1 spp: every pass costs a trace of the whole kernel."""
     budget = max(int(min(fraction * spp, spp - 1)), 0)
-    k = min(PASSES, (budget + 1).bit_length() - 1)   # 2^k - 1 ≤ budget
+    k = min(passes, (budget + 1).bit_length() - 1)   # 2^k - 1 ≤ budget
     if k == 0:
         return []
     unit = budget // (2 ** k - 1)
@@ -151,10 +154,10 @@ def pass_seed(seed: int, i: int) -> int:
 
 class Guide:
     """A binary tree over the scene's bounds, each node split at the middle
-    of its longest side while it holds more than ``threshold`` records, with
-    a learned pmf over the square's cells in every node; numpy arrays
-    (children of a node consecutive), and the same on the device for
-    sampling (:meth:`device`)."""
+    of its longest side while it holds more than ``threshold``·√R of the R
+    records, with a learned pmf over the square's res² cells in every node;
+    numpy arrays (children of a node consecutive), and the same on the
+    device for sampling (:meth:`device`)."""
 
     def __init__(self, res: int):
         self.res = res
@@ -174,44 +177,73 @@ class Guide:
         return int(np.sum(self.trained & (self.child == 0)))
 
     @classmethod
-    def learn(cls, res: int, voxels, hits, li, ld, threshold: int) -> Guide:
-        """The tree and pmfs of the records, given as their sums per voxel
-        (``voxels``) and cell of the square (:func:`tally`): ``hits``
-        records, ``li`` the radiance they saw arrive indirectly, ``ld`` the
-        emission their direction hit, MIS-weighted. Built breadth first over the grid (in
-        voxel units); a node's statistics are sums over its voxels, since a
-        split never divides a voxel. A node with fewer than two records per
-        cell keeps its parent's pmf (uniform at the root: cosine sampling,
-        not trained).
+    def learn(cls, res: int, voxel, cell, li, ld, threshold: float, refine: float) -> Guide:
+        """The tree and pmfs of the records (:meth:`Records.learned`): per
+        record its voxel, its direction's cell of the res² square, the
+        radiance ``li`` it saw arrive indirectly and the emission ``ld`` its
+        direction hit, MIS-weighted.
 
-        A cell's weight is the mean L_i of the records in it (cells no
-        record fell in get the node's mean): every cell spans the same
-        cosine-weighted solid angle, so this is the cell's share of
-        ∫ L_i cos θ, up to its within-cell variation, and far less noisy
-        than splatting L_i/p, which one rare record of small p dominates.
-        A node also keeps the share of its records' light that arrived
-        indirectly, Σ li / Σ (li + ld): the part of the continuation's
-        integrand the learned density models (the rest is the BSDF
-        sample's share of the direct light, which it samples well).
+        The tree splits the grid breadth first (in voxel units) while a
+        node holds more than ``threshold``·√R of the R records (so that, as
+        in Müller et al., leaves and the records per leaf both grow as √R:
+        more records buy spatial and directional resolution alike); a split
+        never divides a voxel. A node with at least MIN_TRAINED records
+        learns its pmf from them (:func:`refined_means`: per cell the mean
+        L_i of a quadtree cell that is refined where light concentrates);
+        one with fewer keeps its parent's (uniform at the root: cosine
+        sampling, not trained).
+        Every cell spans the same cosine-weighted solid angle, so a cell's
+        mean L_i is its share of ∫ L_i cos θ, up to its within-cell
+        variation, and far less noisy than splatting L_i/p, which one rare
+        record of small p dominates. A node also keeps the share of its
+        records' light that arrived indirectly, Σ li / Σ (li + ld): the
+        part of the continuation's integrand the learned density models
+        (the rest is the BSDF sample's share of the direct light, which it
+        samples well).
 
         The image is unbiased whatever is learned."""
         g = cls(res)
         if not np.any(li > 0):          # (no light arrived: no node would learn)
             return g
         nb = res * res
-        p = _voxel_centres(voxels)
-        axis, split, child, pmf, trained = [0], [0.0], [0], [g.pmf[0]], [False]
-        indirect = [0.0]
-        queue = deque([(0, np.arange(len(voxels)), np.zeros(3), np.full(3, float(GRID)), 0)])
+        g._grow(np.bincount(voxel, minlength=GRID ** 3), threshold * np.sqrt(len(voxel)))
+        nodes = len(g.child)
+        node = g.locate(_voxel_centres(np.arange(GRID ** 3)))[voxel]
+        key = node * nb + cell
+        hits = np.bincount(key, minlength=nodes * nb).reshape(nodes, nb).astype(float)
+        total = np.bincount(key, weights=li, minlength=nodes * nb).reshape(nodes, nb)
+        direct = np.bincount(node, weights=ld, minlength=nodes)
+        for k in reversed(range(nodes)):     # (an inner node's sums are its children's)
+            first = int(g.child[k])
+            if first:
+                hits[k] = hits[first] + hits[first + 1]
+                total[k] = total[first] + total[first + 1]
+                direct[k] = direct[first] + direct[first + 1]
+        own = (hits.sum(axis=1) >= MIN_TRAINED) & (total.sum(axis=1) > 0)
+        means = refined_means(hits, total, res, refine)
+        pmf = (1 - FLOOR) * means / np.maximum(means.sum(axis=1, keepdims=True), 1e-30) \
+            + FLOOR / nb
+        indirect = total.sum(axis=1) / np.maximum(total.sum(axis=1) + direct, 1e-30)
+        g.pmf, g.trained, g.indirect = np.repeat(g.pmf, nodes, axis=0), np.zeros(nodes, bool), \
+            np.zeros(nodes)
+        parent = g.parents()
+        for k in range(nodes):               # (breadth first: a parent before its children)
+            if own[k]:
+                g.pmf[k], g.trained[k], g.indirect[k] = pmf[k], True, indirect[k]
+            elif k:
+                g.pmf[k], g.trained[k], g.indirect[k] = (g.pmf[parent[k]], g.trained[parent[k]],
+                                                         g.indirect[parent[k]])
+        return g
+
+    def _grow(self, counts, threshold: float):
+        """Split the root breadth first by the records per voxel ``counts``."""
+        occupied = np.flatnonzero(counts)
+        p, c = _voxel_centres(occupied), counts[occupied]
+        axis, split, child = [0], [0.0], [0]
+        queue = deque([(0, np.arange(len(occupied)), np.zeros(3), np.full(3, float(GRID)), 0)])
         while queue:
             node, idx, lo, hi, depth = queue.popleft()
-            h, l_i = hits[idx].sum(axis=0), li[idx].sum(axis=0)
-            count = int(h.sum())
-            own = _cell_pmf(h, l_i) if count >= 2 * nb else None
-            if own is not None:
-                pmf[node], trained[node] = own, True
-                indirect[node] = _indirect_share(l_i.sum(), ld[idx].sum())
-            if count <= threshold or depth >= MAX_TREE_DEPTH or np.max(hi - lo) <= 1:
+            if c[idx].sum() <= threshold or depth >= MAX_TREE_DEPTH or np.max(hi - lo) <= 1:
                 continue
             a = int(np.argmax(hi - lo))
             mid = 0.5 * (lo[a] + hi[a])
@@ -222,13 +254,17 @@ class Guide:
             hi1[a] = lo2[a] = mid
             for k, (part, low, high) in enumerate(((idx[~upper], lo, hi1), (idx[upper], lo2, hi))):
                 axis.append(0), split.append(0.0), child.append(0)
-                pmf.append(pmf[node]), trained.append(trained[node])
-                indirect.append(indirect[node])
                 queue.append((first + k, part, low, high, depth + 1))
-        g.axis, g.split = np.array(axis, np.uint32), np.array(split, np.float32)
-        g.child, g.pmf, g.trained = np.array(child, np.uint32), np.array(pmf), np.array(trained)
-        g.indirect = np.array(indirect)
-        return g
+        self.axis, self.split = np.array(axis, np.uint32), np.array(split, np.float32)
+        self.child = np.array(child, np.uint32)
+
+    def parents(self) -> np.ndarray:
+        """Parent of every node (-1 for the root)."""
+        parent = np.full(len(self.child), -1, np.int64)
+        inner = np.flatnonzero(self.child)
+        parent[self.child[inner]] = inner
+        parent[self.child[inner] + 1] = inner
+        return parent
 
     def bsdf_share(self, bsdf_fraction: float) -> float:
         """Mean BSDF share α over the trained leaves (1 if none learned)."""
@@ -249,13 +285,17 @@ class Guide:
 
     def device(self, bsdf_fraction: float) -> dict:
         """The arrays :meth:`GuidedPathIntegrator.sample` reads, as the
-        variant's types (numpy in scalar variants)."""
-        pmf = self.pmf.astype(np.float32)
+        variant's types (numpy in scalar variants): the leaves' pmfs and
+        cdfs, their BSDF shares, and the leaf of every voxel."""
+        leaves = np.flatnonzero(self.child == 0)
+        row = np.zeros(len(self.child), np.int64)
+        row[leaves] = np.arange(len(leaves))
+        pmf = self.pmf[leaves].astype(np.float32)
         cdf = np.cumsum(pmf, axis=1)
         cdf /= cdf[:, -1:]
-        alpha = np.where(self.trained, mixture_share(bsdf_fraction, self.indirect),
+        alpha = np.where(self.trained[leaves], mixture_share(bsdf_fraction, self.indirect[leaves]),
                          1.0).astype(np.float32)
-        leaf = self.locate(_voxel_centres(np.arange(GRID ** 3))).astype(np.uint32)
+        leaf = row[self.locate(_voxel_centres(np.arange(GRID ** 3)))].astype(np.uint32)
         arrays = {"leaf": leaf, "pmf": pmf.ravel(), "cdf": cdf.ravel(), "alpha": alpha}
         if not dr.is_jit_v(mi.Float):
             return arrays
@@ -277,40 +317,45 @@ def mixture_share(bsdf_fraction: float, indirect):
     return 1.0 - (1.0 - bsdf_fraction) * np.asarray(indirect)
 
 
-def _indirect_share(li: float, ld: float) -> float:
-    """Σ li / Σ (li + ld) of a node's records, from the two sums (1 where
-    nothing arrived)."""
-    total = float(li + ld)
-    return float(li) / total if total > 0 else 1.0
-
-
 def _voxel_centres(voxel: np.ndarray) -> np.ndarray:
     """Centres of voxels (n, 3), in voxel units."""
     v = np.asarray(voxel, np.int64)
     return np.stack([v % GRID, (v // GRID) % GRID, v // (GRID * GRID)], axis=1) + 0.5
 
 
-def tally(res: int, voxel, cell, li, ld):
-    """The records summed per voxel and cell of the square: (the voxels
-    they fell in, then per voxel and cell (n, res²) their count, Σ li and
-    Σ ld). Learning reads only these, so its time grows with the voxels
-    the paths visited, not with the records."""
-    nb = res * res
-    occupied = np.flatnonzero(np.bincount(voxel, minlength=GRID ** 3))
-    row = np.zeros(GRID ** 3, np.int64)
-    row[occupied] = np.arange(len(occupied))
-    key, size = row[voxel] * nb + cell, len(occupied) * nb
-    return (occupied,) + tuple(np.bincount(key, weights=w, minlength=size).reshape(-1, nb)
-                               for w in (None, li, ld))
+def refined_means(hits, total, res: int, refine: float) -> np.ndarray:
+    """Per node (rows) and cell of the res² square, the mean L_i of the
+    quadtree cell that holds it: from the whole square down, a quadtree
+    cell is split in four while it carries more than ``refine`` of the
+    node's ∫ L_i cos θ and holds at least MIN_SPLIT records (after Müller
+    et al.'s directional quadtree). Where light concentrates (a sunlit
+    patch seen from afar) its cells get the fine resolution; elsewhere a
+    mean over many records replaces noisy small cells. A quadrant no record
+    fell in keeps its parent's mean. ``hits`` and ``total`` (nodes, res²)
+    are the records' counts and Σ L_i per cell."""
+    n = len(hits)
+    h, t = hits.reshape(n, res, res), total.reshape(n, res, res)
 
+    def level(a, k):                         # sums over the k × k quadtree cells
+        s = res // k
+        return a.reshape(n, k, s, k, s).sum(axis=(2, 4))
 
-def _cell_pmf(hits, total):
-    """The pmf of one node from its records per cell and their Σ L_i (see
-    :meth:`Guide.learn`), None where its records carry no light."""
-    if total.sum() <= 0:
-        return None
-    weight = np.where(hits > 0, total / np.maximum(hits, 1), total.sum() / hits.sum())
-    return (1 - FLOOR) * weight / weight.sum() + FLOOR / len(hits)
+    def children(a):                         # each cell's value on its 2 × 2 children
+        return a.repeat(2, axis=1).repeat(2, axis=2)
+
+    root = t.sum(axis=(1, 2)) / np.maximum(h.sum(axis=(1, 2)), 1)
+    mean = root[:, None, None]
+    refined = np.ones((n, 1, 1), bool)       # cells whose quadtree reaches this level
+    k = 1
+    while k < res:
+        share = mean / (k * k) / np.maximum(root, 1e-30)[:, None, None]
+        split = children(refined & (share > refine) & (level(h, k) >= MIN_SPLIT))
+        hk, tk = level(h, 2 * k), level(t, 2 * k)
+        prior = children(mean)
+        own = (tk + SHRINK * prior) / (hk + SHRINK)
+        mean = np.where(split, own, children(mean))
+        refined, k = split, 2 * k
+    return mean.reshape(n, res * res)
 
 
 class Records:
@@ -405,15 +450,26 @@ class GuidedPathIntegrator(IlluminationEstimator):
        - |float|
        - Share of each render's samples per pixel spent learning, in passes
          of 1, 2, 4, … spp (in [0, 1)). (Default: 0.25)
-     * - spatial_threshold
+     * - train_passes
        - |int|
-       - A node of the spatial tree splits while more than this many of the
-         training vertices (all passes so far) fell in it. (Default: 4000)
+       - Training passes at most (each traces the whole kernel once more;
+         0: no learning). (Default: 2)
+     * - spatial_threshold
+       - |float|
+       - A node of the spatial tree splits while more than this many times
+         √R of the R training vertices (all passes so far) fell in it.
+         (Default: 20)
      * - directional_res
        - |int|
        - Cells per side of the unit square each leaf's pmf is over (a power
          of 2), warped to the hemisphere by the cosine warp: res² cells of
-         equal cosine-weighted solid angle. (Default: 8)
+         equal cosine-weighted solid angle, the finest the learned density
+         resolves. (Default: 32)
+     * - directional_threshold
+       - |float|
+       - A quadtree cell of a leaf's square is refined while it carries more
+         than this share of the leaf's light (in [0, 1); 0: every cell that
+         has the records). (Default: 0.01)
 
     Next-event estimation and the power heuristic as ``mis``; the path
     continues along a direction drawn, with probability α, from the BSDF,
@@ -426,15 +482,19 @@ class GuidedPathIntegrator(IlluminationEstimator):
     that the continuation hits directly on emitters, which the learned
     distribution leaves to the BSDF's sample and NEE.
 
-    **Learning.** Each call of ``render`` learns afresh, in at most two
-    training passes of doubling spp (``train_fraction`` of the samples), the
-    second drawn with what the first learned. Every path vertex records its
+    **Learning.** Each call of ``render`` learns afresh, in at most
+    ``train_passes`` training passes of doubling spp (``train_fraction`` of
+    the samples), each drawn with what the passes before it learned. Every
+    path vertex records its
     voxel (of a 32³ grid over the scene's bounds), its continuation's cell
     and L_i along it: the radiance the path gathered after it, less the
     emission the continuation hit (next-event estimation has that), over the
     throughput. From the pooled records a binary tree splits the grid while
-    a node holds more than ``spatial_threshold`` of them; each leaf's pmf is
-    its cells' mean L_i, so the density is ∝ indirect L_i cos θ. Where
+    a node holds more than ``spatial_threshold``·√R of them; each leaf's pmf is
+    its cells' mean L_i, so the density is ∝ indirect L_i cos θ, with the
+    means taken over a quadtree that refines where light concentrates (cells
+    above ``directional_threshold`` of the leaf's light) and stays coarse
+    where records are few. Where
     nothing arrives indirectly the first pass learns nothing and training
     stops. The training passes' images are discarded: the image is the last
     render, with the remaining samples and the last density, so it is
@@ -461,6 +521,7 @@ class GuidedPathIntegrator(IlluminationEstimator):
     use_nee = True
     use_mis = True
     records_paths = False                      # (True during training passes)
+    learns = True                              # (the learning stage measures it)
     sample_emitter = staticmethod(sample_emitter_direction)
     emitter_pdf = staticmethod(emitter_direction_pdf)
 
@@ -468,17 +529,26 @@ class GuidedPathIntegrator(IlluminationEstimator):
         super().__init__(props)
         self.bsdf_fraction = float(props.get("bsdf_fraction", 0.5))
         self.train_fraction = float(props.get("train_fraction", 0.25))
-        self.spatial_threshold = int(props.get("spatial_threshold", 4000))
-        self.directional_res = int(props.get("directional_res", 8))
+        self.train_passes = props.get("train_passes", PASSES)
+        self.spatial_threshold = float(props.get("spatial_threshold", 20.0))
+        self.directional_res = int(props.get("directional_res", 32))
+        self.directional_threshold = float(props.get("directional_threshold", 0.01))
         if not 0 < self.bsdf_fraction <= 1:
             raise ValueError(f"bsdf_fraction = {self.bsdf_fraction} is invalid: it must lie "
                              "in (0, 1] (the BSDF's share keeps the mixture unbiased)")
         if not 0 <= self.train_fraction < 1:
             raise ValueError(f"train_fraction = {self.train_fraction} is invalid: use a "
                              "share of the samples in [0, 1) (0: no learning, as mis)")
-        if self.spatial_threshold < 1:
+        if isinstance(self.train_passes, bool) or not isinstance(self.train_passes, int) \
+                or self.train_passes < 0:
+            raise ValueError(f"train_passes = {self.train_passes!r} is invalid: use a "
+                             "whole number of passes >= 0 (0: no learning, as mis)")
+        if not self.spatial_threshold > 0:
             raise ValueError(f"spatial_threshold = {self.spatial_threshold} is invalid: "
-                             "use a record count >= 1")
+                             "use a factor > 0 of the square root of the records, e.g. 20")
+        if not 0 <= self.directional_threshold < 1:
+            raise ValueError(f"directional_threshold = {self.directional_threshold} is "
+                             "invalid: use a share of a cell's light in [0, 1), e.g. 0.01")
         res = self.directional_res
         if res < 2 or res & (res - 1):
             raise ValueError(f"directional_res = {res} is invalid: use a power of 2 "
@@ -504,11 +574,13 @@ class GuidedPathIntegrator(IlluminationEstimator):
         depth = int(min(self.max_depth, TRAIN_DEPTH))
         records = []                        # (voxel, cell, L_i, L_d) of every pass so far
         try:
-            for i, n in enumerate(training_passes(spp, self.train_fraction)):
+            for i, n in enumerate(training_passes(spp, self.train_fraction,
+                                                  self.train_passes)):
                 records.append(self._train(scene, sensor, pass_seed(seed, i), n, pixels, depth))
-                sums = tally(self.directional_res, *(np.concatenate(c) for c in zip(*records)))
-                guide = Guide.learn(self.directional_res, *sums, self.spatial_threshold)
-                self.training.append({"spp": n, "records": int(sums[1].sum()),
+                pooled = [np.concatenate(c) for c in zip(*records)]
+                guide = Guide.learn(self.directional_res, *pooled, self.spatial_threshold,
+                                    self.directional_threshold)
+                self.training.append({"spp": n, "records": len(pooled[0]),
                                       "leaves": guide.leaves,
                                       "trained_leaves": guide.trained_leaves,
                                       "bsdf_share": guide.bsdf_share(self.bsdf_fraction)})

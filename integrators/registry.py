@@ -19,6 +19,9 @@ Each plugin class declares its facts as class attributes beside its strategy
   as bayesian_hemisphere): the suite then measures its bias instead of
   testing for none;
 * ``diffuse_only`` — it refuses glossy lobes too (``glossy_bsdf``);
+* ``learns`` — it learns its sampling density while it renders, in training
+  passes it takes from the render's samples (properties ``train_passes`` and
+  ``train_fraction``): the learning stage measures its error against them;
 * ``equal_rays_baseline`` — for an estimator of N directions per shading
   point, the Monte Carlo estimator it is compared with at equal rays (the
   quadrature stage): ``cosine_hemisphere`` unless it samples the light,
@@ -66,6 +69,7 @@ class Facts:
     unbiased: bool = True
     diffuse_only: bool = False
     equal_rays_baseline: str = "cosine_hemisphere"
+    learns: bool = False
 
     @property
     def reaches(self) -> frozenset:
@@ -99,7 +103,8 @@ def facts_of(cls) -> Facts:
                  # (classes not derived from IlluminationEstimator may omit these)
                  depths=getattr(cls, "depths", None), unbiased=getattr(cls, "unbiased", True),
                  diffuse_only=getattr(cls, "diffuse_only", False),
-                 equal_rays_baseline=getattr(cls, "equal_rays_baseline", "cosine_hemisphere"))
+                 equal_rays_baseline=getattr(cls, "equal_rays_baseline", "cosine_hemisphere"),
+                 learns=getattr(cls, "learns", False))
 
 
 def register(cls) -> type:

@@ -87,9 +87,53 @@ def test_training_passes_double_and_stay_within_their_share(llvm):
         assert all(b >= 2 * a for a, b in zip(passes, passes[1:]))
 
 
+def concentrated_records(res, rng, records=200_000, patch=(5, 6), light=50.0, noise=1.0):
+    """Records on a res² square: light ``light`` in one fine cell ``patch``
+    (row, column), exponential noise of mean ``noise`` everywhere, records
+    uniform over the square; their counts and Σ L_i per cell (1, res²)."""
+    cell = rng.integers(0, res * res, records)
+    li = rng.exponential(noise, records) + np.where(cell == patch[0] * res + patch[1], light, 0.0)
+    hits = np.bincount(cell, minlength=res * res).astype(float)[None]
+    return hits, np.bincount(cell, weights=li, minlength=res * res)[None]
+
+
+def test_the_quadtree_resolves_a_small_bright_cell_and_smooths_the_rest(llvm):
+    """Light in one of 32² cells: the refined means put about its share of
+    the light in that cell (a flat 8² grid spreads it over 16 cells), and
+    the dark cells, each under 1 % of the light, stay at a coarser level
+    instead of following each fine cell's noise."""
+    m, res = gp(), 32
+    hits, total = concentrated_records(res, np.random.default_rng(3))
+    means = m.refined_means(hits, total, res, 0.01)[0].reshape(res, res)
+    share = means[5, 6] / means.sum()
+    truth = 50 / (50 + res * res * 1.0)
+    assert 0.7 * truth < share < 1.3 * truth, (share, truth)
+    # (far from the light cells stop at 16² (each holds under 1 % of the
+    # light): they vary less than the 32² cells' own means)
+    raw = (total / hits)[0].reshape(res, res)
+    far = means[16:, 16:]
+    assert far.std() < 0.6 * raw[16:, 16:].std() and abs(far.mean() - 1) < 0.1
+    # without refinement every cell carries the square's mean
+    flat = m.refined_means(hits, total, res, 1.0)[0]
+    assert np.ptp(flat) < 1e-9
+
+
+def test_a_lone_bright_record_does_not_make_a_spike(llvm):
+    """A cell refined on few records is pulled towards its parent's mean
+    (SHRINK records' worth): one record 100× the rest raises its cell's
+    weight by far less than 100×."""
+    m, res = gp(), 32
+    rng = np.random.default_rng(5)
+    hits, total = concentrated_records(res, rng, records=3000, light=0.0)
+    total[0, 7 * res + 7] += 100.0
+    means = m.refined_means(hits, total, res, 0.0)[0]
+    assert means.max() / np.median(means) < 10, means.max() / np.median(means)
+
+
 @pytest.mark.parametrize("params, message", [
     ({"bsdf_fraction": 0.0}, "bsdf_fraction"), ({"train_fraction": 1.0}, "train_fraction"),
-    ({"directional_res": 12}, "power of 2"), ({"spatial_threshold": 0}, "spatial_threshold")])
+    ({"directional_res": 12}, "power of 2"), ({"spatial_threshold": 0}, "spatial_threshold"),
+    ({"directional_threshold": 1.0}, "directional_threshold")])
 def test_bad_parameters_are_refused(llvm, params, message):
     with pytest.raises(Exception, match=message):
         mi.load_dict({"type": "guided_path", **params})
@@ -205,3 +249,14 @@ def test_the_suite_passes_it_and_fails_a_wrong_learned_pdf(llvm, tmp_path):
                     cache_dir=tmp_path / "cache")
     with pytest.raises(AssertionError, match="fail"):
         assert_unbiased(wrong)
+
+
+def test_train_passes_is_honoured_and_checked(llvm):
+    scene = renders.load_scene(ROOM, res=8)
+    guided = renders.make_integrator("guided_path", {"train_passes": 3, "train_fraction": 0.5})
+    renders.render(scene, guided, 64, seed=0)
+    assert [t["spp"] for t in guided.training] == gp().training_passes(64, 0.5, 3)
+    assert len(guided.training) == 3
+    for bad in (-1, 1.5, True):
+        with pytest.raises(Exception, match="train_passes"):
+            mi.load_dict({"type": "guided_path", "train_passes": bad})
