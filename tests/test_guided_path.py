@@ -251,6 +251,21 @@ def test_the_suite_passes_it_and_fails_a_wrong_learned_pdf(llvm, tmp_path):
         assert_unbiased(wrong)
 
 
+# ----------------------------- The learning stage -----------------------------
+
+def test_the_learning_stage_asks_for_the_passes_the_plugin_makes(llvm):
+    """stages/learning.training: the image keeps its spp and the plugin
+    trains in exactly u, 2u, 4u, … (u = spp/4) before it."""
+    from mcillum.validation.stages import learning
+    m = gp()
+    for spp in (1, 16, 64, 2048, 4096):
+        for j in learning.PASSES:
+            total, params = learning.training(spp, j)
+            passes = m.training_passes(total, params["train_fraction"], params["train_passes"])
+            assert passes == [max(spp // 4, 1) * 2 ** i for i in range(j)], (spp, j, passes)
+            assert total - sum(passes) == spp
+
+
 def test_train_passes_is_honoured_and_checked(llvm):
     scene = renders.load_scene(ROOM, res=8)
     guided = renders.make_integrator("guided_path", {"train_passes": 3, "train_fraction": 0.5})
@@ -260,3 +275,38 @@ def test_train_passes_is_honoured_and_checked(llvm):
     for bad in (-1, 1.5, True):
         with pytest.raises(Exception, match="train_passes"):
             mi.load_dict({"type": "guided_path", "train_passes": bad})
+
+
+def test_the_learning_stage_records_error_against_training(llvm, tmp_path):
+    """A scene run with ``learning = true``: guided_path's relMSE at the top
+    rung's spp after 0–4 training passes, in results.json (schema-valid) and
+    the report; without the flag, no stage and no record."""
+    import json
+
+    import jsonschema
+
+    from mcillum.validation import pipeline, results
+    from mcillum.validation.plan import profiles
+
+    def run(flag, out):
+        plan = profiles.SceneRun(scene="sunlit_room", res=4, ladder=(16, 64), renders=4,
+                                 learning=flag)
+        profile = profiles.Profile(name="learning", runs=(plan,),
+                                   estimators=("guided_path", "path"), reference_max_seconds=10.0)
+        return pipeline.validate(profile, out_dir=str(out), cache_dir=str(tmp_path / "cache"),
+                                 groups=("scenes",), speed_stage=False, progress=False)
+
+    found = run(True, tmp_path / "on")
+    learned = found.scenes[0].learning
+    assert [x.name for x in learned] == ["guided_path"]
+    points = learned[0].points
+    assert [p.training_spp for p in points] == [0, 16, 48, 112, 240]
+    assert learned[0].spp == 64 and learned[0].renders == 4
+    assert all(np.isfinite(p.relmse) and p.relmse_low <= p.relmse <= p.relmse_high
+               for p in points)
+    data = json.loads((tmp_path / "on" / "results.json").read_text())
+    jsonschema.validate(data, json.load(open(results.SCHEMA_FILE)))
+    assert data["scenes"][0]["learning"][0]["points"][4]["training_spp"] == 240
+    page = (tmp_path / "on" / "report" / "index.html").read_text()
+    assert "Learning: error against training" in page
+    assert run(False, tmp_path / "off").scenes[0].learning is None

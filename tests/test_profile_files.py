@@ -108,7 +108,7 @@ def dump(profile: Profile) -> str:
     for run in profile.runs:
         lines += ["[[scenes]]", *(f"{k} = {_toml(getattr(run, k))}" for k in
                                   ("scene", "res", "ladder", "renders", "max_depth",
-                                   "defines", "display"))]
+                                   "defines", "display", "learning"))]
         lines += [f"label = {_toml(run.label)}"] if run.label else []
     for case in profile.failures:
         lines += ["[[failures]]", *(f"{k} = {_toml(getattr(case, k))}" for k in
@@ -241,7 +241,7 @@ MISTAKES = {
     "unknown key": (
         'name = "m"\n' + scene() + scene("sky_sphere", extra="ladders = [4]"),
         ("unknown key 'ladders' in scenes[1] (known: scene, res, ladder, renders, "
-         "max_depth, defines, label, display)")),
+         "max_depth, defines, label, display, learning)")),
     "unknown top-level key": (
         'name = "m"\nreference_max_sp = 4\n' + scene(),
         "unknown key 'reference_max_sp' at the top level (known: name, "),
@@ -276,6 +276,9 @@ MISTAKES = {
     "a display that is neither": (
         'name = "m"\n' + scene(extra="display = true"),
         "scenes[0].display: must be a table or false, got true (a boolean)"),
+    "a learning flag that is a string": (
+        'name = "m"\n' + scene(extra='learning = "yes"'),
+        "scenes[0].learning: must be true or false, got 'yes' (a string)"),
     "a sequential budget that is not positive": (
         'name = "m"\n[sequential]\ncase_budget = 0\n' + scene(),
         "sequential.case_budget: must be"),

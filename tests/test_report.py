@@ -22,7 +22,8 @@ from mcillum.validation.report import charts, parts
 from mcillum.validation.report import scenes as scene_section
 from mcillum.validation.report.parts import worst_window
 from mcillum.validation.results import (Budget, BudgetRun, Check, Convergence, EstimatorInfo,
-                                        EstimatorResult, Ratio, ReferenceSummary,
+                                        EstimatorResult, Learning, LearningPoint, Ratio,
+                                        ReferenceSummary,
                                         Results, RunStats, SceneResult, Speed, Unbiasedness)
 from mcillum.validation.stats import costs
 
@@ -69,6 +70,14 @@ def reference_summary() -> ReferenceSummary:
                             key="k")
 
 
+def synthetic_learning(name="cosine_hemisphere") -> Learning:
+    """A learning curve that falls to a third and flattens."""
+    points = [LearningPoint(passes=j, training_spp=16 * (2 ** j - 1), relmse=r,
+                            relmse_low=0.8 * r, relmse_high=1.2 * r, seconds=0.01 * 2 ** j)
+              for j, r in enumerate((3e-2, 1.8e-2, 1.2e-2, 1.0e-2, 1.0e-2))]
+    return Learning(name=name, spp=64, renders=8, points=points)
+
+
 def synthetic_results(scenes=("alpha", "beta"), ladder=(4, 16, 64)) -> Results:
     """A run of three estimators on two scenes; uniform_hemisphere fails
     ``unbiased`` everywhere."""
@@ -104,7 +113,8 @@ def synthetic_results(scenes=("alpha", "beta"), ladder=(4, 16, 64)) -> Results:
         scene_results.append(SceneResult(
             name=s, path=f"scenes/{s}.xml", summary=f"{s}: a synthetic scene", res=8,
             max_depth=2, ladder=list(ladder), renders=8, reference=reference_summary(),
-            estimators=ests, speed=synthetic_speed(rng)))
+            estimators=ests, speed=synthetic_speed(rng),
+            learning=[synthetic_learning()] if s == scenes[0] else None))
     facts = {n: EstimatorInfo(display_name=n.replace("_", " "), colour=COLOURS[n],
                               unreachable=[], max_direction_pdf=None) for n in ESTIMATORS}
     return Results(created="2026-11-22T12:00:00", profile="quick", variant="llvm_ad_rgb",
@@ -132,6 +142,22 @@ def test_scene_charts_label_axes_and_every_estimator(builder):
         assert name in svg
     for colour in COLOURS.values():
         assert colour.lower() in svg.lower()
+
+
+def test_learning_is_shown_as_a_table_and_a_curve():
+    """The learning stage's section: each point's training spp, relMSE with
+    its interval and its ratio to no training; the curve's ticks name the
+    training spp (0 included) in the estimator's colour."""
+    scene = synthetic_results().scenes[0]
+    page = scene_section._learning_section(scene, COLOURS)
+    assert "<h3>Learning" in page and page.count("<tr>") == 1 + 5
+    assert "0.0300 [0.024" not in page and "0.03 [0.024, 0.036]" in page and "0.33" in page
+    svg = charts.learning_curve(scene.learning[0], COLOURS)
+    assert COLOURS["cosine_hemisphere"] in svg
+    for tick in ("0", "16", "48", "112", "240"):
+        assert f">{tick}<" in svg, tick
+    line = results.learning_summary(scene.learning[0])
+    assert "0.03 after 0" in line and "0.01 after 240" in line and "0.33×" in line
 
 
 def test_axis_labels_carry_units():
@@ -349,6 +375,7 @@ def chart_svgs() -> list[str]:
     return [charts.error_vs_time(scene, COLOURS), charts.error_vs_spp(scene, COLOURS),
             charts.error_spread(scene, COLOURS),
             charts.efficiency_summary(synthetic_results(), COLOURS),
+            charts.learning_curve(synthetic_learning(), COLOURS),
             charts.colour_bar(1e-3, 1.0, parts.map_colours(parts.ERROR_LEVELS), "relative error")]
 
 

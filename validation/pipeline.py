@@ -7,7 +7,9 @@ below), then the checks decide (:mod:`.checks`):
     scene comparison   load → choose estimators → K renders per rung of an spp
                        ladder → reference → measure → settle (sequential) →
                        quadrature (estimators of N directions: equal rays, bias
-                       against N, calibration) → release the scene → images;
+                       against N, calibration) → learning (estimators that
+                       learn their pdf, where the plan asks: error against
+                       training passes) → release the scene → images;
                        checks; then the speed-and-images stage at the display
                        resolution (stages/speed.py): cost model → equal-time
                        renders → reference → relMSE, efficiency, ranking, FLIP
@@ -46,12 +48,13 @@ from .plan import profiles, scenes, seeds, user_scenes
 from .results import layout
 from .run import executors, renders
 from .run.progress import Progress
-from .stages import cases, common, quadrature, scene, speed
+from .stages import cases, common, learning, quadrature, scene, speed
 from .stages.context import Context, Run
 from .stats import metrics, statistics
 
 SCENE = (common.load, common.choose_estimators, scene.render_ladder, common.build_reference,
-         scene.measure, scene.settle, quadrature.measure, common.release, scene.save_images)
+         scene.measure, scene.settle, quadrature.measure, learning.measure, common.release,
+         scene.save_images)
 SPEED = (speed.display, speed.time_costs, speed.render_budgets, speed.display_reference,
          speed.release_display, speed.measure_speed, speed.save_display)
 CASE = (common.load, cases.probe_refusals, cases.render_seeds, common.build_reference,
@@ -170,7 +173,8 @@ def validate(profile_name="quick", scene_names=None, estimators=None,
     json_path = layout.results_json(out_dir)
     before = _stamp(json_path)
     total = sum(r.renders * len(at_depth(estimators, r)) * len(r.ladder) +
-                quadrature.planned_renders(at_depth(estimators, r), r.renders)
+                quadrature.planned_renders(at_depth(estimators, r), r.renders) +
+                learning.planned_renders(at_depth(estimators, r), r.renders, r)
                 for r in plans) + \
         sum(r.display.renders * len(at_depth(estimators, r)) * len(r.display.path_spp)
             for r in plans if r.display and speed_stage) + \

@@ -47,6 +47,9 @@ class SceneRun:
     #: Integrator settings that define its image besides ``max_depth``
     #: (``rr_depth``, ``hide_emitters``: read off a user's scene).
     settings: dict = field(default_factory=dict)
+    #: Run the learning stage (stages/learning.py) for the estimators that
+    #: learn their pdf: their error against training passes.
+    learning: bool = False
 
     @property
     def id(self) -> str:

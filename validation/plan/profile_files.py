@@ -19,6 +19,7 @@ The format (quick.toml is a worked example; SCHEMA lists every key)::
     ladder = [32, 128, 512, 2048]
     renders = 16
     display = false                 # none; or {res = 64} (its own)
+    learning = true                 # optional: the learning stage (stages/learning.py)
     [[failures]]                    # one per failure case; for a glossy one:
     sweep = {parameter = "alpha", values = [0.5, 0.1, 0.02]}
 
@@ -72,7 +73,7 @@ SCHEMA = {
     "scenes": {"scene": ("text", True), "res": ("count", True), "ladder": ("ladder", True),
                "renders": ("count", True), "max_depth": ("depth", False),
                "defines": ("defines", False), "label": ("text", False),
-               "display": ("display", False)},
+               "display": ("display", False), "learning": ("flag", False)},
     "failures": {"group": ("group", True), "scene": ("text", True), "res": ("count", True),
                  "spp": ("count", True), "seeds": ("count", True),
                  "defines": ("defines", False), "label": ("text", False),
@@ -109,6 +110,7 @@ _PLAIN = {
               "an array of non-empty strings (leave the key out for the default)"),
     "numbers": (lambda v: _array(v, _is_number), "a non-empty array of numbers"),
     "group": (lambda v: v in FAILURE_GROUPS, "one of " + ", ".join(FAILURE_GROUPS)),
+    "flag": (lambda v: isinstance(v, bool), "true or false"),
 }
 
 

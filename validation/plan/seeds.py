@@ -88,6 +88,7 @@ STREAMS = {
     "speed": Layout(500_000, 10_000, blocks=9),
     "speed_timing": Layout(590_000, 10_000),
     "quadrature": Layout(600_000, 10_000, blocks=8),
+    "learning": Layout(680_000, 1_000, blocks=20),
     "failure": Layout(700_000, 50_000),
     "sunless": Layout(750_000, 50_000),
     "replication": Layout(800_000, 50_000),

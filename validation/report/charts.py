@@ -187,6 +187,28 @@ def settings_curve(q) -> str:
                    f"{q.name}, N = {q.directions}: settings")
 
 
+def learning_curve(learned, colours: dict) -> str:
+    """relMSE of an estimator's image at a fixed spp against the training
+    spp before it, with 95 % intervals (learning stage); 0 training spp is
+    drawn at the axis' left end."""
+    fig, ax = plt.subplots(figsize=(5.2, 3.8))
+    pts = learned.points
+    unit = min((p.training_spp for p in pts if p.training_spp > 0), default=1)
+    # (no training on a log axis: half the first pass's spp, labelled 0)
+    x = [p.training_spp if p.training_spp > 0 else unit / 2 for p in pts]
+    y = [p.relmse for p in pts]
+    err = [[max(p.relmse - p.relmse_low, 0) for p in pts],
+           [max(p.relmse_high - p.relmse, 0) for p in pts]]
+    ax.errorbar(x, y, yerr=err, fmt="o-", ms=4, capsize=3, color=colours[learned.name],
+                label=f"{learned.name}, {learned.spp} spp in the image")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xticks(x, ["0" if p.training_spp == 0 else str(p.training_spp) for p in pts])
+    ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+    return _finish(fig, ax, "training samples per pixel before the image",
+                   "relMSE (ε = 0.01)", f"{learned.name}: learning")
+
+
 def error_spread(scene: SceneResult, colours: dict) -> str:
     """Per-render relMSE over seeds at the top spp (heavy-tail evidence):
     one strip of points per estimator, median marked."""

@@ -29,6 +29,7 @@ def scene_section(scene: SceneResult, run_dir: str, colours: dict,
 {speed}
 {_statistics_section(scene, run_dir, colours, by_design)}
 {_quadrature_section(scene, colours) if scene.quadrature else ""}
+{_learning_section(scene, colours) if scene.learning else ""}
 </section>"""
 
 
@@ -80,6 +81,34 @@ median lies in [0.5, 2] (above: over-confident); outside [0.1, 3] the check fail
 <table><tr><th>estimator</th><th>N</th><th>baseline</th><th>relMSE ÷ baseline at equal rays</th>
 <th>posterior std</th></tr>{''.join(rows)}</table>
 {bias}{settings}"""
+
+
+def _learning_section(scene: SceneResult, colours: dict) -> str:
+    """Estimators that learn their pdf: relMSE at a fixed spp against the
+    training before it (learning.py)."""
+    rows, charts_ = [], []
+    for learned in scene.learning:
+        first = learned.points[0]
+        for p in learned.points:
+            change = f"{p.relmse / first.relmse:.2f}" if first.relmse > 0 else "—"
+            rows.append(f"<tr><td>{swatch(learned.name, colours)}</td><td>{p.passes}</td>"
+                        f"<td>{p.training_spp}</td><td>{p.relmse:.3g} [{p.relmse_low:.3g}, "
+                        f"{p.relmse_high:.3g}]</td><td>{change}</td>"
+                        f"<td>{p.seconds * 1e3:.0f} ms</td></tr>")
+        charts_.append(charts.learning_curve(learned, colours))
+    l0 = scene.learning[0]
+    return f"""
+<h3>Learning: error against training</h3>
+<p>An estimator that learns its pdf while it renders, at {l0.spp} spp in the image and
+{l0.renders} renders per point: its relMSE (less the reference's share, 95 % interval)
+after 0, 1, 2, … training passes of doubling spp. The image's own samples are the same
+at every point; only what was learned before them changes, so a falling curve is the
+learning paying off per sample, and where it flattens more training buys nothing.
+Without training it renders as its fallback (<code>mis</code> for
+<code>guided_path</code>). The time of a render includes its training.</p>
+<table><tr><th>estimator</th><th>passes</th><th>training spp</th><th>relMSE [95 %]</th>
+<th>÷ no training</th><th>time per render</th></tr>{''.join(rows)}</table>
+{''.join(charts_)}"""
 
 
 def _settings(q, colours: dict) -> str:

@@ -5,7 +5,8 @@ them. They import nothing of the pipeline. Only this package turns them into
 files and back:
 
 * records (kw-only dataclasses): :mod:`.common` (outcomes, a check),
-  :mod:`.scene`, :mod:`.speed`, :mod:`.quadrature` (a scene comparison),
+  :mod:`.scene`, :mod:`.speed`, :mod:`.quadrature`, :mod:`.learning` (a scene
+  comparison),
   :mod:`.cases` (the failures group), :mod:`.run` (the whole run, versions);
 * :mod:`.json_io` — ``results.json`` both ways, and ``schema.json``;
 * :mod:`.tables` — ``results.csv``, ``summary.md``, JUnit XML;
@@ -19,6 +20,7 @@ from .cases import (BatchTest, CaseReference, CaseResult, CaseRow, Percentiles, 
 from .common import OUTCOMES, Check, ReferenceSummary, having  # noqa: F401
 from .json_io import (SCHEMA_FILE, NoResultsError, ResultsError, from_json, load,  # noqa: F401
                       to_json, write_json)
+from .learning import Learning, LearningPoint  # noqa: F401
 from .quadrature import (BiasAtN, Calibration, EqualRays, Quadrature,  # noqa: F401
                          SettingScore, Settings)
 from .run import MINOR_VERSION, SCHEMA, VERSION, EstimatorInfo, Results  # noqa: F401
@@ -26,6 +28,6 @@ from .scene import (Convergence, EstimatorResult, RunStats, SceneResult,  # noqa
                     Unbiasedness)
 from .speed import (KINDS, Budget, BudgetRun, CostModel, Interval, Placement, Ratio,  # noqa: F401
                     Speed, Try)
-from .tables import (CSV_FIELDS, counts_line, kinds_shown, quadrature_summary,  # noqa: F401
-                     ranking_text, ratio_text, speed_summary, summary, wall_text, write_csv,
-                     write_junit, write_summary)
+from .tables import (CSV_FIELDS, counts_line, kinds_shown, learning_summary,  # noqa: F401
+                     quadrature_summary, ranking_text, ratio_text, speed_summary, summary,
+                     wall_text, write_csv, write_junit, write_summary)

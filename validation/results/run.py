@@ -32,7 +32,9 @@ VERSION = 1
 #: (``others_cores``, ``cores``, ``loaded``); ``rerun_seconds``.
 #: 10: per quadrature estimator ``settings``: how it chose its settings for
 #: the scene, and every candidate's held-out error.
-MINOR_VERSION = 10
+#: 11: per scene ``learning`` (estimators that learn their pdf: relMSE at a
+#: fixed spp against the training passes before it).
+MINOR_VERSION = 11
 
 
 @dataclass(kw_only=True)

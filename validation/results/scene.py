@@ -7,6 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from .common import Outcome, ReferenceSummary, optional
+from .learning import Learning
 from .quadrature import Quadrature
 from .speed import Speed
 
@@ -106,6 +107,8 @@ class SceneResult:
     estimators: list[EstimatorResult]
     speed: Speed | None = optional()
     quadrature: list[Quadrature] | None = optional()
+    #: Estimators that learn their pdf: error against training (minor version 11).
+    learning: list[Learning] | None = optional()
     #: A scene given by path: what the run took from where, and which
     #: estimators do not render it, in sentences (minor version 7).
     notes: list[str] | None = optional()

@@ -14,6 +14,7 @@ from mcillum import files
 
 from . import layout
 from .cases import CaseResult
+from .learning import Learning
 from .quadrature import Quadrature
 from .run import Results
 from .speed import KINDS, Placement, Speed
@@ -78,6 +79,8 @@ def summary(results: Results) -> str:
             lines += ["", *speed_summary(scene.speed)]
         for q in scene.quadrature or []:
             lines += ["", quadrature_summary(q)]
+        for learned in scene.learning or []:
+            lines += ["", learning_summary(learned)]
         lines.append("")
     if results.failures:
         lines += ["## Where methods fail", "",
@@ -131,6 +134,15 @@ def quadrature_summary(q: Quadrature) -> str:
         c = q.calibration
         parts.append(f"posterior std {c.verdict} (RMSE/std median {c.median:.2f})")
     return f"{q.name} (N = {q.directions}, {q.spp} spp): " + "; ".join(parts) + "."
+
+
+def learning_summary(learned: Learning) -> str:
+    """One line of what the learning stage measured of ``learned.name``."""
+    first, last = learned.points[0], learned.points[-1]
+    steps = ", ".join(f"{p.relmse:.3g} after {p.training_spp}" for p in learned.points)
+    change = f"{last.relmse / first.relmse:.2f}×" if first.relmse > 0 else "—"
+    return (f"{learned.name} learning ({learned.spp} spp in the image): relMSE {steps} "
+            f"training spp; the last {change} the first.")
 
 
 def wall_text(results: Results) -> str:

@@ -81,6 +81,7 @@ class Context:
     #: measure, replicate: name → checks.evidence.Evidence, what the verdicts read
     evidence: dict = field(default_factory=dict)
     quadrature: dict = field(default_factory=dict)    # quadrature.measure: name → Quadrature
+    learning: dict = field(default_factory=dict)      # learning.measure: name → Learning
     rows: dict = field(default_factory=dict)          # tail_numbers …: name → CaseRow
     per_render: dict = field(default_factory=dict)    # tail_numbers: name → relMSE per seed
     sunless: "Context" = None       # cases.sunless_twin: the case on its map without the sun

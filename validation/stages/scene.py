@@ -191,4 +191,5 @@ def scene_result(ctx) -> SceneResult:
         ladder=list(ctx.plan.ladder), renders=ctx.plan.renders,
         reference=reference_summary(ctx.reference), estimators=list(ctx.measured.values()),
         speed=ctx.speed, quadrature=list(ctx.quadrature.values()) or None,
+        learning=list(ctx.learning.values()) or None,
         notes=list(ctx.scene_notes) or None)

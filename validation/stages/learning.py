@@ -1,0 +1,79 @@
+"""The learning stage: does an estimator that learns its pdf while it
+renders (registry facts ``learns``: guided_path) learn?
+
+On a scene whose plan asks for it (profile key ``learning``), at the
+ladder's top rung ``spp`` and resolution: K renders (the plan's, at most
+:data:`RENDERS`) of ``spp`` image samples
+per pixel after 0, 1, …, :data:`PASSES` training passes of doubling spp
+(u, 2u, 4u, … with u = spp/4), so that the image's own samples stay the
+same and only what was learned before them changes. Per point the relMSE of
+the renders less the reference's share, with its 95 % interval, and the
+median seconds of a render (training included). A learned pdf that helps
+makes the curve fall from its first point (no training: the estimator's
+fallback, e.g. `mis`) and flatten; one that does not, stays level.
+
+The renders are kept in the run directory like the quadrature stage's
+(stacks.kept): a re-run loads them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mcillum.integrators import registry
+
+from ..plan import seeds
+from ..results import Learning, LearningPoint
+from ..run import jobs, stacks
+from ..stats import costs, metrics
+
+#: Training passes of the curve's points (each doubles the one before).
+PASSES = (0, 1, 2, 3, 4)
+#: Renders per point at most (the plan's K, if fewer).
+RENDERS = 8
+
+
+def learners(names) -> list[str]:
+    return [n for n in names if n in registry.names() and registry.facts(n).learns]
+
+
+def planned_renders(names, k: int, plan) -> int:
+    """Renders this stage makes for ``names`` at K renders each (progress)."""
+    return min(k, RENDERS) * len(PASSES) * len(learners(names)) if plan.learning else 0
+
+
+def training(spp: int, passes: int) -> tuple[int, dict]:
+    """(total spp, properties) of a render whose image has ``spp`` samples
+    per pixel after ``passes`` training passes of u, 2u, … (u = spp/4)."""
+    train = max(spp // 4, 1) * (2 ** passes - 1)
+    total = spp + train
+    # (+½: the plugin takes int(fraction · total) training samples)
+    return total, {"train_passes": passes, "train_fraction": (train + 0.5) / total}
+
+
+def measure(ctx) -> None:
+    """Per learning estimator of the scene: ``ctx.learning[name]``."""
+    ctx.learning = {}
+    names = learners(ctx.integrators) if ctx.plan.learning else []
+    spp, k = ctx.plan.ladder[-1], min(ctx.plan.renders, RENDERS)
+    ref = ctx.reference
+    share = metrics.reference_relmse(ref.mean, ref.variance_of_mean) if names else 0.0
+    for i, name in enumerate(names):
+        points = []
+        for j in PASSES:
+            total, params = training(spp, j)
+            stack = _renders(ctx, name, params, total, k, len(PASSES) * i + j)
+            values = metrics.per_render_relmse(stack.images, ref.mean) - share
+            mean, ci = costs.relmse_interval(values)
+            points.append(LearningPoint(passes=j, training_spp=total - spp, relmse=mean,
+                                        relmse_low=ci.low, relmse_high=ci.high,
+                                        seconds=float(np.median(stack.seconds))))
+        ctx.learning[name] = Learning(name=name, spp=spp, renders=k, points=points)
+
+
+def _renders(ctx, name, params, spp, k, block) -> stacks.Stack:
+    integrator = jobs.make(name, {**ctx.params, **params})
+    return stacks.kept(ctx, f"learning{block}-{name}", f"learning {params['train_passes']}",
+                       {name: integrator}, {name: spp}, k,
+                       seeds.stream("learning", block).take(k), label=ctx.label,
+                       timed=True)[name]
