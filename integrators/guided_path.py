@@ -58,36 +58,69 @@ def square_cell(u: mi.Point2f, res: int) -> mi.UInt32:
     return iy * res + ix
 
 
-def sample_guide(cdf, base, res: int, u1: mi.Float, u2: mi.Point2f):
-    """(ω in the guide frame, upper side; cell): the cell whose inclusive
-    ``cdf`` entry (from ``base``) first exceeds ``u1``, by bisection; ``u2``
-    uniform in it, then the cosine warp."""
-    n = res * res
-    below = mi.UInt32(0)                      # cells whose cdf ≤ u1
-    step = n // 2
-    while step >= 1:                          # (unrolled: log2 n gathers)
-        mid = below + step
-        below = dr.select(_take(cdf, base + mid - 1) <= u1, mid, below)
-        step //= 2
-    c = dr.minimum(below, n - 1)
+def sample_guide(slot, row, res: int, u1: mi.Float, u2: mi.Point2f):
+    """(ω in the guide frame, upper side; cell): the cell of slot ⌊u1·S⌋ of
+    pmf ``row``'s S = SLOTS_PER_CELL·res² equal-probability slots (one
+    gather: each cell owns as many slots as its quantized pmf, see
+    :func:`guide_tables`); ``u2`` uniform in the cell, then the cosine warp."""
+    slots = SLOTS_PER_CELL * res * res
+    k = dr.minimum(mi.UInt32(u1 * slots), slots - 1)
+    c = _take(slot, row * slots + k)
     u = mi.Point2f((mi.Float(c % res) + u2.x) / res, (mi.Float(c // res) + u2.y) / res)
     return mi.warp.square_to_cosine_hemisphere(u), c
 
 
-def guide_pdf(pmf, base, res: int, w: mi.Vector3f) -> mi.Float:
+def guide_pdf(pmf, row, res: int, w: mi.Vector3f) -> mi.Float:
     """Solid-angle density of :func:`sample_guide` at ``w`` (guide frame,
-    upper side; 0 below)."""
+    upper side; 0 below): pmf · res² · cos θ / π."""
     cell = square_cell(mi.warp.cosine_hemisphere_to_square(w), res)
-    return dr.select(w.z > 0, _take(pmf, base + cell) * (res * res) * w.z * dr.inv_pi, 0.0)
+    return dr.select(w.z > 0, _take(pmf, row * (res * res) + cell) * (res * res) * w.z
+                     * dr.inv_pi, 0.0)
 
 
-def invert_guide(cdf, pmf, base, res: int, w: mi.Vector3f):
+def invert_guide(first, pmf, row, res: int, w: mi.Vector3f):
     """(u1, u2) that :func:`sample_guide` maps to ``w`` (u1 the middle of its
-    cell's cdf step)."""
+    cell's slots)."""
     u = mi.warp.cosine_hemisphere_to_square(w)
     c = square_cell(u, res)
-    u1 = _take(cdf, base + c) - 0.5 * _take(pmf, base + c)
+    i = row * (res * res) + c
+    slots = SLOTS_PER_CELL * res * res
+    u1 = (mi.Float(_take(first, i)) + 0.5 * _take(pmf, i) * slots) / slots
     return u1, mi.Point2f(u.x * res - mi.Float(c % res), u.y * res - mi.Float(c // res))
+
+
+SLOTS_PER_CELL = 8         # equal-probability slots per cell of a learned pmf
+
+
+def quantize(pmf: np.ndarray, slots: int) -> np.ndarray:
+    """Slots per cell for each row of ``pmf``: ``slots`` per row, every
+    cell at least one, the rest in proportion to ``pmf`` (largest
+    remainders first)."""
+    rows, n = pmf.shape
+    share = pmf / pmf.sum(axis=1, keepdims=True) * (slots - n)
+    counts = 1 + np.floor(share).astype(np.int64)
+    left = slots - counts.sum(axis=1)                 # (in [0, n))
+    order = np.argsort(np.floor(share) - share, axis=1, kind="stable")
+    rank = np.empty_like(order)
+    np.put_along_axis(rank, order, np.broadcast_to(np.arange(n), (rows, n)), axis=1)
+    return counts + (rank < left[:, None])
+
+
+def guide_tables(pmf: np.ndarray) -> dict:
+    """The arrays :func:`sample_guide`, :func:`guide_pdf` and
+    :func:`invert_guide` read, from pmfs (rows, res²): ``pmf`` quantized to
+    multiples of 1/S (the density sampled, so the one weighed: the image
+    stays unbiased; with 8 slots per cell a floor cell gets at least 1/8 of
+    a uniform cell's share), ``slot`` the cell of each of a row's S slots,
+    ``first`` each cell's first slot. Sampling then costs one gather where
+    a bisection of the cdf cost log2(res²) (10 at 32²)."""
+    rows, n = pmf.shape
+    slots = SLOTS_PER_CELL * n
+    counts = quantize(pmf, slots)
+    first = np.cumsum(counts, axis=1) - counts
+    cells = np.repeat(np.tile(np.arange(n, dtype=np.uint32), rows), counts.ravel())
+    return {"pmf": (counts / slots).astype(np.float32).ravel(), "slot": cells,
+            "first": first.astype(np.uint32).ravel()}
 
 
 def _take(array, index):
@@ -285,18 +318,16 @@ class Guide:
 
     def device(self, bsdf_fraction: float) -> dict:
         """The arrays :meth:`GuidedPathIntegrator.sample` reads, as the
-        variant's types (numpy in scalar variants): the leaves' pmfs and
-        cdfs, their BSDF shares, and the leaf of every voxel."""
+        variant's types (numpy in scalar variants): the leaves' quantized
+        pmfs and slot tables (:func:`guide_tables`), their BSDF shares, and
+        the leaf of every voxel."""
         leaves = np.flatnonzero(self.child == 0)
         row = np.zeros(len(self.child), np.int64)
         row[leaves] = np.arange(len(leaves))
-        pmf = self.pmf[leaves].astype(np.float32)
-        cdf = np.cumsum(pmf, axis=1)
-        cdf /= cdf[:, -1:]
         alpha = np.where(self.trained[leaves], mixture_share(bsdf_fraction, self.indirect[leaves]),
                          1.0).astype(np.float32)
         leaf = row[self.locate(_voxel_centres(np.arange(GRID ** 3)))].astype(np.uint32)
-        arrays = {"leaf": leaf, "pmf": pmf.ravel(), "cdf": cdf.ravel(), "alpha": alpha}
+        arrays = {"leaf": leaf, "alpha": alpha, **guide_tables(self.pmf[leaves])}
         if not dr.is_jit_v(mi.Float):
             return arrays
         return {k: (mi.UInt32 if v.dtype == np.uint32 else mi.Float)(v)
@@ -660,29 +691,29 @@ class GuidedPathIntegrator(IlluminationEstimator):
     # ------------------------- Sample the next direction -------------------
 
     def mixture(self, si, bsdf):
-        """(the BSDF's share α at this vertex, the leaf's first cell): α = 1
+        """(the BSDF's share α at this vertex, its leaf's row): α = 1
         for a BSDF with a delta lobe and where nothing was learned."""
         node = _take(self._guide["leaf"], voxel_of(si.p, self._grid))
         alpha = _take(self._guide["alpha"], node)
         alpha = dr.select(mi.has_flag(bsdf.flags(), mi.BSDFFlags.Delta), 1.0, alpha)
-        return alpha, node * (self.directional_res ** 2)
+        return alpha, node
 
     def sample_direction(self, scene, sampler, si, bsdf, ctx):
         u_pick, u1, u2 = sampler.next_1d(), sampler.next_1d(), sampler.next_2d()
         if self._guide is None:
             return sample_bsdf_direction(bsdf, ctx, si, u1, u2)
         g, res = self._guide, self.directional_res
-        alpha, base = self.mixture(si, bsdf)
+        alpha, row = self.mixture(si, bsdf)
         from_bsdf = u_pick < alpha
 
         # Either technique's direction (both drawn: the lanes pick one)
         wo_b, w_b, pdf_b, delta_b, eta_b = sample_bsdf_direction(bsdf, ctx, si, u1, u2)
-        wg, _ = sample_guide(g["cdf"], base, res, u1, u2)
+        wg, _ = sample_guide(g["slot"], row, res, u1, u2)
         wo = dr.select(from_bsdf, wo_b, si.to_local(from_guide(si, wg)))
 
         # p = α p_bsdf + (1 - α) p_guide;  weight = f cos / p
         f_cos, p_bsdf = bsdf.eval_pdf(ctx, si, wo)
-        p = alpha * p_bsdf + (1 - alpha) * self.guide_density(si, base, si.to_world(wo))
+        p = alpha * p_bsdf + (1 - alpha) * self.guide_density(si, row, si.to_world(wo))
         # (α = 1 is BSDF sampling as it is, delta lobes included)
         plain = alpha >= 1
         weight = dr.select(plain, w_b, over_pdf(f_cos, p))
@@ -694,13 +725,13 @@ class GuidedPathIntegrator(IlluminationEstimator):
     def continuation_pdf(self, si, bsdf, wo_world, bsdf_pdf):
         if self._guide is None:
             return bsdf_pdf
-        alpha, base = self.mixture(si, bsdf)
-        return alpha * bsdf_pdf + (1 - alpha) * self.guide_density(si, base, wo_world)
+        alpha, row = self.mixture(si, bsdf)
+        return alpha * bsdf_pdf + (1 - alpha) * self.guide_density(si, row, wo_world)
 
-    def guide_density(self, si, base, wo_world):
+    def guide_density(self, si, row, wo_world):
         """The learned density at world direction ``wo_world`` (0 on the side
         the path did not arrive from)."""
-        return guide_pdf(self._guide["pmf"], base, self.directional_res,
+        return guide_pdf(self._guide["pmf"], row, self.directional_res,
                          to_guide(si, wo_world))
 
     def to_string(self) -> str:

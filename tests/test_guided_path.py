@@ -28,13 +28,18 @@ def gp():
     return guided_path
 
 
-def random_guide(res, rows=3, seed=1):
+def random_guide(res, rows=3, seed=1, peak=20.0):
+    """The device tables of ``rows`` random pmfs over res² cells, the second
+    with a cell ``peak``× the others. (A peak of 200, 80 % of the mass in
+    one cell, is rejected by χ² even at ires 16: its curved edges are
+    integrated too roughly.)"""
     rng = np.random.default_rng(seed)
     pmf = rng.random((rows, res * res)) + 0.25
+    pmf[1, 5] = peak
     pmf /= pmf.sum(axis=1, keepdims=True)
-    cdf = np.cumsum(pmf, axis=1)
-    cdf /= cdf[:, -1:]
-    return mi.Float(pmf.ravel()), mi.Float(cdf.ravel())
+    tables = gp().guide_tables(pmf)
+    return (mi.Float(tables["pmf"]), mi.UInt32(tables["slot"]), mi.UInt32(tables["first"]),
+            pmf)
 
 
 # ------------------------- Sampling the learned part -------------------------
@@ -43,15 +48,15 @@ def random_guide(res, rows=3, seed=1):
 def test_chi2_on_a_learned_density(llvm, factor, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)          # mi.chi2 writes chi2_data.py on rejection
     m, res = gp(), 8
-    pmf, cdf = random_guide(res)
-    base = mi.UInt32(res * res)          # the second row
+    pmf, slot, _, _ = random_guide(res)
+    row = mi.UInt32(1)                   # the second row
 
     def sample(u):
-        w, _ = m.sample_guide(cdf, base, res, u.x, mi.Point2f(u.y, u.z))
+        w, _ = m.sample_guide(slot, row, res, u.x, mi.Point2f(u.y, u.z))
         return w
 
     def pdf(w):
-        return factor * m.guide_pdf(pmf, base, res, w)
+        return factor * m.guide_pdf(pmf, row, res, w)
 
     test = mi.chi2.ChiSquareTest(domain=mi.chi2.SphericalDomain(), sample_func=sample,
                                  pdf_func=pdf, sample_dim=3, sample_count=1_000_000,
@@ -63,18 +68,34 @@ def test_chi2_on_a_learned_density(llvm, factor, tmp_path, monkeypatch):
 
 def test_inverse_undoes_sampling_and_the_pdf_integrates_to_one(llvm):
     m, res = gp(), 8
-    pmf, cdf = random_guide(res)
-    base = mi.UInt32(0)
+    pmf, slot, first, _ = random_guide(res)
+    row = mi.UInt32(1)
     rng = mi.PCG32(size=100_000)
     u1, u2 = rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32())
-    w, cell = m.sample_guide(cdf, base, res, u1, u2)
-    v1, v2 = m.invert_guide(cdf, pmf, base, res, w)
-    w2, cell2 = m.sample_guide(cdf, base, res, v1, v2)
+    w, cell = m.sample_guide(slot, row, res, u1, u2)
+    v1, v2 = m.invert_guide(first, pmf, row, res, w)
+    w2, cell2 = m.sample_guide(slot, row, res, v1, v2)
     assert np.array_equal(np.array(cell), np.array(cell2))
     assert np.max(np.abs(np.array(w) - np.array(w2))) < 1e-3
-    # (uniform directions on the sphere: E[p] · 4π = ∫ p)
+    # (uniform directions on the sphere: E[p] · 4π = ∫ p; the row without a peak)
     wu = mi.warp.square_to_uniform_sphere(u2)
-    assert abs(float(dr.mean(m.guide_pdf(pmf, base, res, wu))[0]) * 4 * np.pi - 1) < 0.02
+    integral = float(dr.mean(m.guide_pdf(pmf, mi.UInt32(0), res, wu))[0]) * 4 * np.pi
+    assert abs(integral - 1) < 0.02
+
+
+def test_the_slots_follow_the_pmf_and_miss_no_cell(llvm):
+    """Every row's slots: S = 8 per cell in all, each cell at least one,
+    the quantized pmf within one slot of the learned one."""
+    m, res = gp(), 8
+    pmf_q, slot, first, pmf = random_guide(res, peak=200.0)
+    n, slots = res * res, m.SLOTS_PER_CELL * res * res
+    counts = np.array(pmf_q).reshape(3, n) * slots
+    assert np.allclose(counts, np.round(counts)) and (np.round(counts) >= 1).all()
+    assert np.allclose(counts.sum(axis=1), slots)
+    assert np.abs(counts - pmf * (slots - n) - 1).max() <= 1 + 1e-6
+    cells = np.array(slot).reshape(3, slots)
+    for r in range(3):
+        assert np.array_equal(np.bincount(cells[r], minlength=n), np.round(counts[r]))
 
 
 def test_training_passes_double_and_stay_within_their_share(llvm):
