@@ -507,8 +507,9 @@ class GuidedPathIntegrator(IlluminationEstimator):
     else from the distribution learned in the spatial cell
     of the vertex, and is weighted by f cos / p with p the mixture's density,
     so the image is unbiased whatever was learned: the BSDF's share keeps p
-    positive wherever f is. Vertices with a delta lobe, and cells where
-    nothing was learned, use the BSDF alone. α is ``bsdf_fraction`` where
+    positive wherever f is. Vertices with a delta or glossy lobe (the learned
+    density, ∝ L_i cos θ, knows nothing of a lobe), and cells where nothing
+    was learned, use the BSDF alone. α is ``bsdf_fraction`` where
     the cell's light all arrives indirectly and grows to 1 with the share
     that the continuation hits directly on emitters, which the learned
     distribution leaves to the BSDF's sample and NEE.
@@ -692,10 +693,14 @@ class GuidedPathIntegrator(IlluminationEstimator):
 
     def mixture(self, si, bsdf):
         """(the BSDF's share α at this vertex, its leaf's row): α = 1
-        for a BSDF with a delta lobe and where nothing was learned."""
+        for a BSDF with a delta or glossy lobe and where nothing was
+        learned."""
         node = _take(self._guide["leaf"], voxel_of(si.p, self._grid))
         alpha = _take(self._guide["alpha"], node)
-        alpha = dr.select(mi.has_flag(bsdf.flags(), mi.BSDFFlags.Delta), 1.0, alpha)
+        # (the learned density ∝ L_i cos θ knows nothing of a lobe)
+        flags = bsdf.flags()
+        plain = mi.has_flag(flags, mi.BSDFFlags.Delta) | mi.has_flag(flags, mi.BSDFFlags.Glossy)
+        alpha = dr.select(plain, 1.0, alpha)
         return alpha, node
 
     def sample_direction(self, scene, sampler, si, bsdf, ctx):
