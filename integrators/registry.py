@@ -149,7 +149,7 @@ def facts(name: str) -> Facts:
 #: stays neutral (its name, a spare colour, reaches every kind of content,
 #: no pdf bound, any max_depth, unbiased).
 DECLARABLE = ("display_name", "colour", "reachable", "max_direction_pdf", "listing_order",
-              "depths", "unbiased", "diffuse_only")
+              "depths", "unbiased", "diffuse_only", "learns")
 
 #: name → Facts declared by a user's integrator class (not one of ours).
 _learned: dict[str, Facts] = {}
@@ -177,7 +177,8 @@ def learn(name: str, cls) -> Facts | None:
                   declared.get("listing_order", 500), ours=False,
                   depths=tuple(depths) if depths is not None else None,
                   unbiased=bool(declared.get("unbiased", True)),
-                  diffuse_only=bool(declared.get("diffuse_only", False)))
+                  diffuse_only=bool(declared.get("diffuse_only", False)),
+                  learns=bool(declared.get("learns", False)))
     _learned[name] = found
     return found
 

@@ -331,3 +331,27 @@ def test_the_learning_stage_records_error_against_training(llvm, tmp_path):
     page = (tmp_path / "on" / "report" / "index.html").read_text()
     assert "Learning: error against training" in page
     assert run(False, tmp_path / "off").scenes[0].learning is None
+
+
+def test_a_users_integrator_and_scene_can_ask_for_the_learning_stage(llvm):
+    """A user's class declares ``learns`` (a fact it may declare); a
+    profile's [user_scenes] ``learning = true`` reaches every scene given
+    by path."""
+    from mcillum.integrators import registry
+    from mcillum.validation.plan import profiles, user_scenes
+    from mcillum.validation.stages import learning
+
+    class Mine:
+        learns = True
+        colour = "#123456"
+
+    registry.learn("my_learner", Mine)
+    try:
+        assert learning.learners(["my_learner", "mis", "guided_path"]) == \
+            ["my_learner", "guided_path"]
+    finally:
+        registry._learned.pop("my_learner", None)
+    plan = profiles.UserScenes(res=8, ladder=(16, 64), renders=4, learning=True)
+    profile = profiles.Profile(name="mine", runs=(), user_scenes=plan)
+    run, _ = user_scenes.scene_run(profile, ROOM)
+    assert run.learning and learning.planned_renders(["guided_path"], 4, run) == 20

@@ -93,6 +93,7 @@ class UserScenes:
     ladder: tuple[int, ...]
     renders: int
     display: Display | None = None
+    learning: bool = False         # the learning stage on every such scene
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -49,7 +49,7 @@ def scene_run(profile: Profile, path: str, *, defines: dict | None = None,
                    ladder=plan.ladder, renders=plan.renders,
                    max_depth=chosen.pop("max_depth", -1), defines=defines, display=display,
                    label=label or os.path.splitext(os.path.basename(path))[0],
-                   own_film=own, settings=chosen)
+                   own_film=own, settings=chosen, learning=plan.learning)
     return run, _notes(run, found, given, wrappers)
 
 

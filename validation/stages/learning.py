@@ -34,7 +34,10 @@ RENDERS = 8
 
 
 def learners(names) -> list[str]:
-    return [n for n in names if n in registry.names() and registry.facts(n).learns]
+    """Those of ``names`` whose facts say they learn (a user's integrator
+    may declare ``learns = True``; it must then take the properties
+    ``train_passes`` and ``train_fraction``)."""
+    return [n for n in names if registry.facts(n).learns]
 
 
 def planned_renders(names, k: int, plan) -> int:
