@@ -30,7 +30,7 @@ from . import registry  # noqa: E402,F401
 from .scene_checks import UnreachableContentError  # noqa: E402,F401  (variant-free)
 
 #: Modules that hold no plugin and do not depend on the variant.
-SHARED = ("_llvm", "gp_quadrature", "gp_scene", "gp_settings", "passes", "registry",
+SHARED = ("_llvm", "gp_quadrature", "gp_scene", "gp_settings", "guide", "passes", "registry",
           "scene_checks")
 #: Base classes the plugins derive from, (re)loaded in this order before them:
 #: every estimator's, then that of the estimators of N directions per point.

@@ -28,6 +28,12 @@ def gp():
     return guided_path
 
 
+def guide():
+    """What the plugin learns and samples from (integrators/guide.py)."""
+    from mcillum.integrators import guide
+    return guide
+
+
 def random_guide(res, rows=3, seed=1, peak=20.0):
     """The device tables of ``rows`` random pmfs over res² cells, the second
     with a cell ``peak``× the others. (A peak of 200, 80 % of the mass in
@@ -37,7 +43,7 @@ def random_guide(res, rows=3, seed=1, peak=20.0):
     pmf = rng.random((rows, res * res)) + 0.25
     pmf[1, 5] = peak
     pmf /= pmf.sum(axis=1, keepdims=True)
-    tables = gp().guide_tables(pmf)
+    tables = guide().guide_tables(pmf)
     return (mi.Float(tables["pmf"]), mi.UInt32(tables["slot"]), mi.UInt32(tables["first"]),
             pmf)
 
@@ -86,9 +92,9 @@ def test_inverse_undoes_sampling_and_the_pdf_integrates_to_one(llvm):
 def test_the_slots_follow_the_pmf_and_miss_no_cell(llvm):
     """Every row's slots: S = 8 per cell in all, each cell at least one,
     the quantized pmf within one slot of the learned one."""
-    m, res = gp(), 8
+    res = 8
     pmf_q, slot, first, pmf = random_guide(res, peak=200.0)
-    n, slots = res * res, m.SLOTS_PER_CELL * res * res
+    n, slots = res * res, guide().SLOTS_PER_CELL * res * res
     counts = np.array(pmf_q).reshape(3, n) * slots
     assert np.allclose(counts, np.round(counts)) and (np.round(counts) >= 1).all()
     assert np.allclose(counts.sum(axis=1), slots)
@@ -99,11 +105,10 @@ def test_the_slots_follow_the_pmf_and_miss_no_cell(llvm):
 
 
 def test_training_passes_double_and_stay_within_their_share(llvm):
-    m = gp()
-    assert m.training_passes(3, 0.25) == [] and m.training_passes(16, 0.0) == []
+    assert guide().training_passes(3, 0.25) == [] and guide().training_passes(16, 0.0) == []
     for spp in (4, 16, 64, 100, 1000):
-        passes = m.training_passes(spp, 0.25)
-        assert 1 <= len(passes) <= m.PASSES and min(passes) >= 1
+        passes = guide().training_passes(spp, 0.25)
+        assert 1 <= len(passes) <= guide().PASSES and min(passes) >= 1
         assert sum(passes) == int(0.25 * spp)
         assert all(b >= 2 * a for a, b in zip(passes, passes[1:]))
 
@@ -123,9 +128,9 @@ def test_the_quadtree_resolves_a_small_bright_cell_and_smooths_the_rest(llvm):
     the light in that cell (a flat 8² grid spreads it over 16 cells), and
     the dark cells, each under 1 % of the light, stay at a coarser level
     instead of following each fine cell's noise."""
-    m, res = gp(), 32
+    res = 32
     hits, total = concentrated_records(res, np.random.default_rng(3))
-    means = m.refined_means(hits, total, res, 0.01)[0].reshape(res, res)
+    means = guide().refined_means(hits, total, res, 0.01)[0].reshape(res, res)
     share = means[5, 6] / means.sum()
     truth = 50 / (50 + res * res * 1.0)
     assert 0.7 * truth < share < 1.3 * truth, (share, truth)
@@ -135,7 +140,7 @@ def test_the_quadtree_resolves_a_small_bright_cell_and_smooths_the_rest(llvm):
     far = means[16:, 16:]
     assert far.std() < 0.6 * raw[16:, 16:].std() and abs(far.mean() - 1) < 0.1
     # without refinement every cell carries the square's mean
-    flat = m.refined_means(hits, total, res, 1.0)[0]
+    flat = guide().refined_means(hits, total, res, 1.0)[0]
     assert np.ptp(flat) < 1e-9
 
 
@@ -143,11 +148,11 @@ def test_a_lone_bright_record_does_not_make_a_spike(llvm):
     """A cell refined on few records is pulled towards its parent's mean
     (SHRINK records' worth): one record 100× the rest raises its cell's
     weight by far less than 100×."""
-    m, res = gp(), 32
+    res = 32
     rng = np.random.default_rng(5)
     hits, total = concentrated_records(res, rng, records=3000, light=0.0)
     total[0, 7 * res + 7] += 100.0
-    means = m.refined_means(hits, total, res, 0.0)[0]
+    means = guide().refined_means(hits, total, res, 0.0)[0]
     assert means.max() / np.median(means) < 10, means.max() / np.median(means)
 
 
@@ -204,7 +209,7 @@ def test_where_light_is_mostly_direct_the_bsdf_takes_the_larger_share(llvm):
 
 
 def test_mixture_share_runs_from_bsdf_fraction_to_one():
-    share = gp().mixture_share
+    share = guide().mixture_share
     assert share(0.5, 1.0) == 0.5 and share(0.5, 0.0) == 1.0 and share(0.2, 0.5) == 0.6
 
 
@@ -214,7 +219,7 @@ def test_scalar_variant_learns_and_renders(use_variant):
     guided = renders.make_integrator("guided_path", {"max_depth": 3})
     out = renders.render(scene, guided, 32, seed=1)
     assert np.isfinite(out.image).all() and out.image.mean() > 0
-    assert [t["spp"] for t in guided.training] == gp().training_passes(32, 0.25)
+    assert [t["spp"] for t in guided.training] == guide().training_passes(32, 0.25)
     assert guided.training[0]["records"] > 0 and guided.training[-1]["trained_leaves"] > 0
 
 
@@ -278,11 +283,10 @@ def test_the_learning_stage_asks_for_the_passes_the_plugin_makes(llvm):
     """stages/learning.training: the image keeps its spp and the plugin
     trains in exactly u, 2u, 4u, … (u = spp/4) before it."""
     from mcillum.validation.stages import learning
-    m = gp()
     for spp in (1, 16, 64, 2048, 4096):
         for j in learning.PASSES:
             total, params = learning.training(spp, j)
-            passes = m.training_passes(total, params["train_fraction"], params["train_passes"])
+            passes = guide().training_passes(total, params["train_fraction"], params["train_passes"])
             assert passes == [max(spp // 4, 1) * 2 ** i for i in range(j)], (spp, j, passes)
             assert total - sum(passes) == spp
 
@@ -291,7 +295,7 @@ def test_train_passes_is_honoured_and_checked(llvm):
     scene = renders.load_scene(ROOM, res=8)
     guided = renders.make_integrator("guided_path", {"train_passes": 3, "train_fraction": 0.5})
     renders.render(scene, guided, 64, seed=0)
-    assert [t["spp"] for t in guided.training] == gp().training_passes(64, 0.5, 3)
+    assert [t["spp"] for t in guided.training] == guide().training_passes(64, 0.5, 3)
     assert len(guided.training) == 3
     for bad in (-1, 1.5, True):
         with pytest.raises(Exception, match="train_passes"):

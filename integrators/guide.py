@@ -1,0 +1,379 @@
+"""What `guided_path` learns, and the tables it samples from: a binary tree
+over the scene's bounds with a learned pmf per node (over the res² cells of
+the cosine-warped square, means taken over a refining quadtree), the
+training records its paths leave, and each pmf quantized to
+equal-probability slots so that a sample costs one gather.
+
+The sampling routine, its density and its inverse (``sample_guide``,
+``guide_pdf``, ``invert_guide``) are in guided_path.py beside the plugin;
+they read what :meth:`Guide.device` builds here. Nothing here depends on the
+variant: Mitsuba's types are looked up when called.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+from collections import deque
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+
+def take(array, index):
+    """``array[index]``: a gather in JIT variants, an element in scalar ones."""
+    if dr.is_jit_v(mi.Float):
+        return dr.gather(type(array), array, index)
+    return array[int(index)].item()
+
+
+# ------------------------------ Sampling tables ----------------------------------
+
+SLOTS_PER_CELL = 8         # equal-probability slots per cell of a learned pmf
+
+
+def quantize(pmf: np.ndarray, slots: int) -> np.ndarray:
+    """Slots per cell for each row of ``pmf``: ``slots`` per row, every
+    cell at least one, the rest in proportion to ``pmf`` (largest
+    remainders first)."""
+    rows, n = pmf.shape
+    share = pmf / pmf.sum(axis=1, keepdims=True) * (slots - n)
+    counts = 1 + np.floor(share).astype(np.int64)
+    left = slots - counts.sum(axis=1)                 # (in [0, n))
+    order = np.argsort(np.floor(share) - share, axis=1, kind="stable")
+    rank = np.empty_like(order)
+    np.put_along_axis(rank, order, np.broadcast_to(np.arange(n), (rows, n)), axis=1)
+    return counts + (rank < left[:, None])
+
+
+def guide_tables(pmf: np.ndarray) -> dict:
+    """The arrays :func:`sample_guide`, :func:`guide_pdf` and
+    :func:`invert_guide` read, from pmfs (rows, res²): ``pmf`` quantized to
+    multiples of 1/S (the density sampled, so the one weighed: the image
+    stays unbiased; with 8 slots per cell a floor cell gets at least 1/8 of
+    a uniform cell's share), ``slot`` the cell of each of a row's S slots,
+    ``first`` each cell's first slot. Sampling then costs one gather where
+    a bisection of the cdf cost log2(res²) (10 at 32²)."""
+    rows, n = pmf.shape
+    slots = SLOTS_PER_CELL * n
+    counts = quantize(pmf, slots)
+    first = np.cumsum(counts, axis=1) - counts
+    cells = np.repeat(np.tile(np.arange(n, dtype=np.uint32), rows), counts.ravel())
+    return {"pmf": (counts / slots).astype(np.float32).ravel(), "slot": cells,
+            "first": first.astype(np.uint32).ravel()}
+
+
+# ----------------------------- Learning -----------------------------------
+# Where: a voxel of a GRID³ grid over the scene's bounds. The learned tree
+# splits voxels' blocks; flattened into a voxel → leaf table for sampling, a
+# vertex finds its leaf with one lookup.
+
+GRID = 32
+
+
+def grid_of(bbox) -> tuple:
+    """(lower corner, voxels per unit length) of the grid over ``bbox``."""
+    lo, hi = np.array(bbox.min, float), np.array(bbox.max, float)
+    pad = 1e-3 * max(float(np.max(hi - lo)), 1e-6)
+    lo, hi = lo - pad, hi + pad
+    return lo, GRID / np.maximum(hi - lo, 1e-9)
+
+
+def voxel_of(p: mi.Point3f, grid) -> mi.UInt32:
+    """Voxel index of ``p`` (x fastest)."""
+    lo, scale = grid
+    i = [dr.minimum(mi.UInt32(dr.maximum((p[k] - float(lo[k])) * float(scale[k]), 0)),
+                    GRID - 1) for k in range(3)]
+    return i[0] + GRID * (i[1] + GRID * i[2])
+
+
+TRAIN_DEPTH = 8            # vertices of a training path that are recorded
+PASSES = 2                 # training passes at most, by default (each traces the kernel)
+MAX_RECORDS = 1 << 22      # records per training render (longer passes split)
+FLOOR = 0.1                # uniform share of every learned pmf
+MIN_TRAINED = 128          # records a node needs to learn its own pmf
+MIN_SPLIT = 128            # records a directional cell needs to be refined
+SHRINK = 64                # records' worth a refined cell's mean is pulled to its parent's
+MAX_TREE_DEPTH = 3 * 5    # (a leaf of one voxel: GRID = 2^5)
+
+
+def training_passes(spp: int, fraction: float, passes: int = PASSES) -> list[int]:
+    """spp of the training passes: ``fraction`` of ``spp`` (leaving at least
+    one sample for the image) in at most ``passes`` passes that double, the
+    first at least 1 spp: every pass costs a trace of the whole kernel."""
+    budget = max(int(min(fraction * spp, spp - 1)), 0)
+    k = min(passes, (budget + 1).bit_length() - 1)   # 2^k - 1 ≤ budget
+    if k == 0:
+        return []
+    unit = budget // (2 ** k - 1)
+    out = [unit * 2 ** i for i in range(k)]
+    out[-1] += budget - sum(out)
+    return out
+
+
+def pass_seed(seed: int, i: int) -> int:
+    """Seed of training render ``i`` of the render with ``seed``: hashed, so
+    that no other render's seed gives the same samples."""
+    digest = hashlib.blake2s(f"guided_path {int(seed)} {i}".encode(), digest_size=4)
+    return int.from_bytes(digest.digest(), "little")
+
+
+class Guide:
+    """A binary tree over the scene's bounds, each node split at the middle
+    of its longest side while it holds more than ``threshold``·√R of the R
+    records, with a learned pmf over the square's res² cells in every node;
+    numpy arrays (children of a node consecutive), and the same on the
+    device for sampling (:meth:`device`)."""
+
+    def __init__(self, res: int):
+        self.res = res
+        self.axis = np.zeros(1, np.uint32)
+        self.split = np.zeros(1, np.float32)
+        self.child = np.zeros(1, np.uint32)      # first child; 0: a leaf
+        self.pmf = np.full((1, res * res), 1.0 / (res * res))
+        self.trained = np.zeros(1, bool)
+        self.indirect = np.zeros(1)              # share of the light arriving indirectly
+
+    @property
+    def leaves(self) -> int:
+        return int(np.sum(self.child == 0))
+
+    @property
+    def trained_leaves(self) -> int:
+        return int(np.sum(self.trained & (self.child == 0)))
+
+    @classmethod
+    def learn(cls, res: int, voxel, cell, li, ld, threshold: float, refine: float) -> Guide:
+        """The tree and pmfs of the records (:meth:`Records.learned`): per
+        record its voxel, its direction's cell of the res² square, the
+        radiance ``li`` it saw arrive indirectly and the emission ``ld`` its
+        direction hit, MIS-weighted.
+
+        The tree splits the grid breadth first (in voxel units) while a
+        node holds more than ``threshold``·√R of the R records (so that, as
+        in Müller et al., leaves and the records per leaf both grow as √R:
+        more records buy spatial and directional resolution alike); a split
+        never divides a voxel. A node with at least MIN_TRAINED records
+        learns its pmf from them (:func:`refined_means`: per cell the mean
+        L_i of a quadtree cell that is refined where light concentrates);
+        one with fewer keeps its parent's (uniform at the root: cosine
+        sampling, not trained).
+        Every cell spans the same cosine-weighted solid angle, so a cell's
+        mean L_i is its share of ∫ L_i cos θ, up to its within-cell
+        variation, and far less noisy than splatting L_i/p, which one rare
+        record of small p dominates. A node also keeps the share of its
+        records' light that arrived indirectly, Σ li / Σ (li + ld): the
+        part of the continuation's integrand the learned density models
+        (the rest is the BSDF sample's share of the direct light, which it
+        samples well).
+
+        The image is unbiased whatever is learned."""
+        g = cls(res)
+        if not np.any(li > 0):          # (no light arrived: no node would learn)
+            return g
+        nb = res * res
+        g._grow(np.bincount(voxel, minlength=GRID ** 3), threshold * np.sqrt(len(voxel)))
+        nodes = len(g.child)
+        node = g.locate(_voxel_centres(np.arange(GRID ** 3)))[voxel]
+        key = node * nb + cell
+        hits = np.bincount(key, minlength=nodes * nb).reshape(nodes, nb).astype(float)
+        total = np.bincount(key, weights=li, minlength=nodes * nb).reshape(nodes, nb)
+        direct = np.bincount(node, weights=ld, minlength=nodes)
+        for k in reversed(range(nodes)):     # (an inner node's sums are its children's)
+            first = int(g.child[k])
+            if first:
+                hits[k] = hits[first] + hits[first + 1]
+                total[k] = total[first] + total[first + 1]
+                direct[k] = direct[first] + direct[first + 1]
+        own = (hits.sum(axis=1) >= MIN_TRAINED) & (total.sum(axis=1) > 0)
+        means = refined_means(hits, total, res, refine)
+        pmf = (1 - FLOOR) * means / np.maximum(means.sum(axis=1, keepdims=True), 1e-30) \
+            + FLOOR / nb
+        indirect = total.sum(axis=1) / np.maximum(total.sum(axis=1) + direct, 1e-30)
+        g.pmf, g.trained, g.indirect = np.repeat(g.pmf, nodes, axis=0), np.zeros(nodes, bool), \
+            np.zeros(nodes)
+        parent = g.parents()
+        for k in range(nodes):               # (breadth first: a parent before its children)
+            if own[k]:
+                g.pmf[k], g.trained[k], g.indirect[k] = pmf[k], True, indirect[k]
+            elif k:
+                g.pmf[k], g.trained[k], g.indirect[k] = (g.pmf[parent[k]], g.trained[parent[k]],
+                                                         g.indirect[parent[k]])
+        return g
+
+    def _grow(self, counts, threshold: float):
+        """Split the root breadth first by the records per voxel ``counts``."""
+        occupied = np.flatnonzero(counts)
+        p, c = _voxel_centres(occupied), counts[occupied]
+        axis, split, child = [0], [0.0], [0]
+        queue = deque([(0, np.arange(len(occupied)), np.zeros(3), np.full(3, float(GRID)), 0)])
+        while queue:
+            node, idx, lo, hi, depth = queue.popleft()
+            if c[idx].sum() <= threshold or depth >= MAX_TREE_DEPTH or np.max(hi - lo) <= 1:
+                continue
+            a = int(np.argmax(hi - lo))
+            mid = 0.5 * (lo[a] + hi[a])
+            first = len(child)
+            axis[node], split[node], child[node] = a, mid, first
+            upper = p[idx, a] >= mid
+            hi1, lo2 = hi.copy(), lo.copy()
+            hi1[a] = lo2[a] = mid
+            for k, (part, low, high) in enumerate(((idx[~upper], lo, hi1), (idx[upper], lo2, hi))):
+                axis.append(0), split.append(0.0), child.append(0)
+                queue.append((first + k, part, low, high, depth + 1))
+        self.axis, self.split = np.array(axis, np.uint32), np.array(split, np.float32)
+        self.child = np.array(child, np.uint32)
+
+    def parents(self) -> np.ndarray:
+        """Parent of every node (-1 for the root)."""
+        parent = np.full(len(self.child), -1, np.int64)
+        inner = np.flatnonzero(self.child)
+        parent[self.child[inner]] = inner
+        parent[self.child[inner] + 1] = inner
+        return parent
+
+    def bsdf_share(self, bsdf_fraction: float) -> float:
+        """Mean BSDF share α over the trained leaves (1 if none learned)."""
+        leaves = self.trained & (self.child == 0)
+        if not leaves.any():
+            return 1.0
+        return float(np.mean(mixture_share(bsdf_fraction, self.indirect[leaves])))
+
+    def locate(self, p: np.ndarray) -> np.ndarray:
+        """Leaf of every point of ``p`` (n, 3; voxel units)."""
+        node = np.zeros(len(p), np.int64)
+        while True:
+            inner = self.child[node] != 0
+            if not inner.any():
+                return node
+            x = p[np.arange(len(p)), self.axis[node]]
+            node = np.where(inner, self.child[node] + (x >= self.split[node]), node)
+
+    def device(self, bsdf_fraction: float) -> dict:
+        """The arrays :meth:`GuidedPathIntegrator.sample` reads, as the
+        variant's types (numpy in scalar variants): the leaves' quantized
+        pmfs and slot tables (:func:`guide_tables`), their BSDF shares, and
+        the leaf of every voxel."""
+        leaves = np.flatnonzero(self.child == 0)
+        row = np.zeros(len(self.child), np.int64)
+        row[leaves] = np.arange(len(leaves))
+        alpha = np.where(self.trained[leaves], mixture_share(bsdf_fraction, self.indirect[leaves]),
+                         1.0).astype(np.float32)
+        leaf = row[self.locate(_voxel_centres(np.arange(GRID ** 3)))].astype(np.uint32)
+        arrays = {"leaf": leaf, "alpha": alpha, **guide_tables(self.pmf[leaves])}
+        if not dr.is_jit_v(mi.Float):
+            return arrays
+        return {k: (mi.UInt32 if v.dtype == np.uint32 else mi.Float)(v)
+                for k, v in arrays.items()}
+
+
+def mixture_share(bsdf_fraction: float, indirect):
+    """The BSDF's share α of a node's one-sample mixture, from the share of
+    its light that arrives indirectly: α = 1 − (1 − ``bsdf_fraction``)·share,
+    ``bsdf_fraction`` where all light is indirect, 1 where none is.
+
+    The continuation's integrand is f cos (L_ind + w L_dir): the learned
+    density follows the first part only, the BSDF's sample suits the second
+    (NEE takes the rest of L_dir). With ``bsdf_fraction`` everywhere, the
+    variance at equal spp was 2.3× `mis`'s under sky_sphere's smooth sky
+    (where light is mostly direct); with this share 1.13×, and on
+    sunlit_room unchanged (docs/measurements.md, 2026-12-02)."""
+    return 1.0 - (1.0 - bsdf_fraction) * np.asarray(indirect)
+
+
+def _voxel_centres(voxel: np.ndarray) -> np.ndarray:
+    """Centres of voxels (n, 3), in voxel units."""
+    v = np.asarray(voxel, np.int64)
+    return np.stack([v % GRID, (v // GRID) % GRID, v // (GRID * GRID)], axis=1) + 0.5
+
+
+def refined_means(hits, total, res: int, refine: float) -> np.ndarray:
+    """Per node (rows) and cell of the res² square, the mean L_i of the
+    quadtree cell that holds it: from the whole square down, a quadtree
+    cell is split in four while it carries more than ``refine`` of the
+    node's ∫ L_i cos θ and holds at least MIN_SPLIT records (after Müller
+    et al.'s directional quadtree). Where light concentrates (a sunlit
+    patch seen from afar) its cells get the fine resolution; elsewhere a
+    mean over many records replaces noisy small cells. A quadrant no record
+    fell in keeps its parent's mean. ``hits`` and ``total`` (nodes, res²)
+    are the records' counts and Σ L_i per cell."""
+    n = len(hits)
+    h, t = hits.reshape(n, res, res), total.reshape(n, res, res)
+
+    def level(a, k):                         # sums over the k × k quadtree cells
+        s = res // k
+        return a.reshape(n, k, s, k, s).sum(axis=(2, 4))
+
+    def children(a):                         # each cell's value on its 2 × 2 children
+        return a.repeat(2, axis=1).repeat(2, axis=2)
+
+    root = t.sum(axis=(1, 2)) / np.maximum(h.sum(axis=(1, 2)), 1)
+    mean = root[:, None, None]
+    refined = np.ones((n, 1, 1), bool)       # cells whose quadtree reaches this level
+    k = 1
+    while k < res:
+        share = mean / (k * k) / np.maximum(root, 1e-30)[:, None, None]
+        split = children(refined & (share > refine) & (level(h, k) >= MIN_SPLIT))
+        hk, tk = level(h, 2 * k), level(t, 2 * k)
+        prior = children(mean)
+        own = (tk + SHRINK * prior) / (hk + SHRINK)
+        mean = np.where(split, own, children(mean))
+        refined, k = split, 2 * k
+    return mean.reshape(n, res * res)
+
+
+class Records:
+    """What the training paths of one render leave: per vertex its voxel,
+    its direction's cell of the guide's square, the throughput after it, the
+    radiance gathered before its continuation and after the emission the
+    continuation hit; per path its radiance (radiance and
+    throughput as their mean over the channels: only learning reads them).
+    Device buffers in JIT variants, lists in scalar ones."""
+
+    def __init__(self, lanes: int, depth: int):
+        self.lanes, self.depth = lanes, depth
+        if dr.is_jit_v(mi.Float):
+            n = lanes * depth
+            self.voxel = dr.zeros(mi.UInt32, n)         # voxel + 1; 0: none
+            self.cell = dr.zeros(mi.UInt32, n)
+            self.beta, self.L = dr.zeros(mi.Float, n), dr.zeros(mi.Float, n)
+            self.hit = dr.zeros(mi.Float, n)
+            self.path = dr.zeros(mi.Float, lanes)
+        else:
+            self.rows, self.path_L, self.lanes_taken = {}, {}, itertools.count()
+
+    def learned(self):
+        """(voxel, cell, L_i, L_d) as numpy, one row per vertex whose path
+        went on (β > 0: where f = 0 the path died and L_i is unknown), each
+        over the throughput after the vertex (which includes f cos/p). L_i is
+        the radiance the path gathered after the emission its continuation
+        hit: the light that arrives indirectly. L_d is that emission,
+        MIS-weighted as the path added it: the continuation's share of the
+        direct light."""
+        none = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0))
+        if not dr.is_jit_v(mi.Float):
+            if not self.rows:
+                return none
+            lane = np.array([k[0] for k in self.rows])
+            voxel, cell, beta, L, hit = (np.array(c) for c in zip(*self.rows.values()))
+            path = np.array([self.path_L[int(x)] for x in lane])
+            with np.errstate(divide="ignore", invalid="ignore"):
+                li, ld = np.maximum(path - hit, 0) / beta, np.maximum(hit - L, 0) / beta
+            alive = (beta > 0) & np.isfinite(li) & np.isfinite(ld)
+            return (voxel[alive].astype(np.int64), cell[alive].astype(np.int64),
+                    li[alive], ld[alive])
+        # (on the device: only the rows kept cross to the host)
+        i = dr.compress(self.voxel > 0)
+        if dr.width(i) == 0:                  # (e.g. only delta lobes were hit)
+            return none
+        beta, hit = dr.gather(mi.Float, self.beta, i), dr.gather(mi.Float, self.hit, i)
+        li = dr.maximum(dr.gather(mi.Float, self.path, i // self.depth) - hit, 0) / beta
+        ld = dr.maximum(hit - dr.gather(mi.Float, self.L, i), 0) / beta
+        alive = dr.compress((beta > 0) & dr.isfinite(li) & dr.isfinite(ld))
+        i = dr.gather(mi.UInt32, i, alive)
+        li, ld = dr.gather(mi.Float, li, alive), dr.gather(mi.Float, ld, alive)
+        voxel, cell = dr.gather(mi.UInt32, self.voxel, i), dr.gather(mi.UInt32, self.cell, i)
+        dr.eval(voxel, cell, li, ld)           # (one launch for the four)
+        return (np.array(voxel).astype(np.int64) - 1, np.array(cell).astype(np.int64),
+                np.array(li), np.array(ld))
