@@ -175,8 +175,8 @@ def pixel_variance(scene, integrator, spp, seeds=12):
 def test_what_it_learns_lowers_the_variance_where_light_comes_indirectly(llvm):
     """sunlit_room at 32², direct light and one indirect bounce: with the
     guide learned from 480 spp, the 32 spp that render the image vary less
-    than `mis`'s 32 spp (0.77× here, docs/measurements.md); their means
-    agree."""
+    than `mis`'s 32 spp (0.71× here; 0.77× with flat 8² cells); their
+    means agree."""
     scene = renders.load_scene(ROOM, res=32)
     mis = renders.make_integrator("mis", {"max_depth": 3})
     guided = renders.make_integrator("guided_path", {"max_depth": 3, "train_fraction": 0.9375})
@@ -191,7 +191,7 @@ def test_what_it_learns_lowers_the_variance_where_light_comes_indirectly(llvm):
 def test_where_light_is_mostly_direct_the_bsdf_takes_the_larger_share(llvm):
     """sky_sphere (a smooth sky, little light arriving indirectly): the BSDF's
     share of the mixture grows with the direct share, and the variance stays
-    near `mis`'s (1.13× at 24² here; 2.3× with the fixed share 0.5, which
+    near `mis`'s (1.09× at 24² here; 2.3× with the fixed share 0.5, which
     this bound rejects). In sunlit_room's walls all light is indirect: the
     share stays near ``bsdf_fraction``."""
     sky = renders.load_scene(str(SCENES / "sky_sphere.xml"), res=24)
