@@ -42,8 +42,7 @@ from mcillum.validation.stats.statistics import loglog_fit
 
 def relmse_stack(images, ref_mean, ref_var) -> tuple[float, float]:
     """(mean relMSE over renders less the reference's relative variance, its se)."""
-    noise = metrics.reference_relmse(ref_mean, ref_var)
-    values = metrics.per_render_relmse(images, ref_mean) - noise
+    values = metrics.net_relmse(images, ref_mean, ref_var)
     return float(values.mean()), float(values.std(ddof=1) / np.sqrt(len(values)))
 
 

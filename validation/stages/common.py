@@ -20,7 +20,7 @@ from mcillum.integrators import registry, scene_checks
 
 from ..plan import scenes, seeds
 from ..results import ReferenceSummary
-from ..run import jobs, references, renders
+from ..run import jobs, references, renders, stacks
 
 REFERENCE = registry.REFERENCE
 
@@ -106,6 +106,20 @@ def kept_file(ctx, what: str) -> str:
     (the points of a sweep, a case's sunless twin)."""
     tag = json.dumps(ctx.defines, sort_keys=True, default=str)
     return f"{what}-{hashlib.sha256(tag.encode()).hexdigest()[:8]}"
+
+
+def stream_renders(ctx, stream: str, name: str, params: dict, spp: int, k: int, block: int,
+                   timed: bool = False):
+    """K renders of estimator ``name`` with ``params`` (over the plan's) at
+    ``spp``, seeded from block ``block`` of seed stream ``stream``, kept in
+    the run directory (stacks.kept: a re-run loads them): the quadrature
+    and learning stages' extra renders."""
+    integrator = jobs.make(name, {**ctx.params, **params})
+    tag = "-".join(f"{key}{value}" for key, value in sorted(params.items()))
+    return stacks.kept(ctx, f"{stream}{block}-{name}", f"{stream} {tag}",
+                       {name: integrator}, {name: spp}, k,
+                       seeds.stream(stream, block).take(k), label=ctx.label,
+                       timed=timed)[name]
 
 
 # ---------------------------------- Reference -----------------------------------

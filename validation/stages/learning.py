@@ -13,7 +13,7 @@ makes the curve fall from its first point (no training: the estimator's
 fallback, e.g. `mis`) and flatten; one that does not, stays level.
 
 The renders are kept in the run directory like the quadrature stage's
-(stacks.kept): a re-run loads them.
+(common.stream_renders): a re-run loads them.
 """
 
 from __future__ import annotations
@@ -22,10 +22,9 @@ import numpy as np
 
 from mcillum.integrators import registry
 
-from ..plan import seeds
 from ..results import Learning, LearningPoint
-from ..run import jobs, stacks
 from ..stats import costs, metrics
+from . import common
 
 #: Training passes of the curve's points (each doubles the one before).
 PASSES = (0, 1, 2, 3, 4)
@@ -60,23 +59,15 @@ def measure(ctx) -> None:
     names = learners(ctx.integrators) if ctx.plan.learning else []
     spp, k = ctx.plan.ladder[-1], min(ctx.plan.renders, RENDERS)
     ref = ctx.reference
-    share = metrics.reference_relmse(ref.mean, ref.variance_of_mean) if names else 0.0
     for i, name in enumerate(names):
         points = []
         for j in PASSES:
             total, params = training(spp, j)
-            stack = _renders(ctx, name, params, total, k, len(PASSES) * i + j)
-            values = metrics.per_render_relmse(stack.images, ref.mean) - share
-            mean, ci = costs.relmse_interval(values)
+            stack = common.stream_renders(ctx, "learning", name, params, total, k,
+                                          len(PASSES) * i + j, timed=True)
+            mean, ci = costs.relmse_interval(
+                metrics.net_relmse(stack.images, ref.mean, ref.variance_of_mean))
             points.append(LearningPoint(passes=j, training_spp=total - spp, relmse=mean,
                                         relmse_low=ci.low, relmse_high=ci.high,
                                         seconds=float(np.median(stack.seconds))))
         ctx.learning[name] = Learning(name=name, spp=spp, renders=k, points=points)
-
-
-def _renders(ctx, name, params, spp, k, block) -> stacks.Stack:
-    integrator = jobs.make(name, {**ctx.params, **params})
-    return stacks.kept(ctx, f"learning{block}-{name}", f"learning {params['train_passes']}",
-                       {name: integrator}, {name: spp}, k,
-                       seeds.stream("learning", block).take(k), label=ctx.label,
-                       timed=True)[name]

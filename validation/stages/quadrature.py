@@ -36,10 +36,10 @@ import numpy as np
 from mcillum.integrators import registry
 
 from ..checks import convergence
-from ..plan import seeds
 from ..results import BiasAtN, Calibration, EqualRays, Quadrature, SettingScore, Settings
-from ..run import jobs, stacks
+from ..run import stacks
 from ..stats import metrics
+from . import common
 
 #: The N of the bias-against-N measurement (the default N is added).
 BIAS_DIRECTIONS = (16, 256)
@@ -107,24 +107,13 @@ def _settings(ctx, name, spp) -> Settings | None:
 
 
 def _renders(ctx, name, params, spp, k, block, timed=False) -> stacks.Stack:
-    """K renders (kept: a re-run loads them) from block ``block`` of the
-    quadrature seed stream."""
-    integrator = jobs.make(name, {**ctx.params, **params})
-    tag = "-".join(f"{key}{value}" for key, value in sorted(params.items()))
-    return stacks.kept(ctx, f"quadrature{block}-{name}", f"quadrature {tag}",
-                       {name: integrator}, {name: spp}, k,
-                       seeds.stream("quadrature", block).take(k), label=ctx.label,
-                       timed=timed)[name]
-
-
-def _relmse_less_reference(stack, ref) -> np.ndarray:
-    """Each render's relMSE less the part the reference's own noise adds."""
-    noise = metrics.reference_relmse(ref.mean, ref.variance_of_mean)
-    return metrics.per_render_relmse(stack.images, ref.mean) - noise
+    """K renders from block ``block`` of the quadrature seed stream."""
+    return common.stream_renders(ctx, "quadrature", name, params, spp, k, block, timed)
 
 
 def _equal_rays(own, baseline, against: str, ref, n, spp) -> EqualRays:
-    a, b = _relmse_less_reference(own, ref), _relmse_less_reference(baseline, ref)
+    a = metrics.net_relmse(own.images, ref.mean, ref.variance_of_mean)
+    b = metrics.net_relmse(baseline.images, ref.mean, ref.variance_of_mean)
     ratio = float(a.mean() / b.mean()) if b.mean() > 0 else float("nan")
     # delta method on log(ā / b̄): var ≈ s_a²/(K ā²) + s_b²/(K b̄²)
     k = len(a)

@@ -71,6 +71,12 @@ def reference_relmse(r, variance_of_mean, eps: float = EPSILON) -> float:
     return float(np.mean(np.asarray(variance_of_mean, np.float64)[..., :3] / (r ** 2 + eps)))
 
 
+def net_relmse(renders, r, variance_of_mean, eps: float = EPSILON) -> np.ndarray:
+    """:func:`per_render_relmse` of each render less :func:`reference_relmse`:
+    its error against the truth rather than against the reference's noise."""
+    return per_render_relmse(renders, r, eps) - reference_relmse(r, variance_of_mean, eps)
+
+
 def mape(x, r, eps: float = EPSILON) -> float:
     r = np.asarray(r, np.float64)
     return float(np.mean(np.abs(_finite(x) - r) / (np.abs(r) + eps)))
