@@ -17,7 +17,11 @@ below), then the checks decide (:mod:`.checks`):
     failure case       load → refusals → K seeds → reference → tail numbers →
                        bias test (sequential) → release → the sunless twin
                        (a heavy-tail case on a map with a sun: the map without
-                       it, through SUNLESS) → sun split; checks; evidence
+                       it, through SUNLESS) → sun split → the widened twin
+                       (those the real sun left inconclusive and that passed
+                       without it: the map with its sun widened to a disc the
+                       samples hit, envmaps/sun.py; through WIDENED) → its
+                       test; checks; evidence
     sweep              each parameter value: load → K seeds → reference →
                        tail numbers; then rows along the sweep; checks
 
@@ -59,8 +63,10 @@ SPEED = (speed.display, speed.time_costs, speed.render_budgets, speed.display_re
          speed.release_display, speed.measure_speed, speed.save_display)
 CASE = (common.load, cases.probe_refusals, cases.render_seeds, common.build_reference,
         cases.tail_numbers, cases.test_bias, common.release, cases.sunless_twin)
-#: The sunless twin of a heavy-tail case (its own context: ``ctx.sunless``).
+#: The sunless twin of a heavy-tail case (its own context: ``ctx.sunless``),
+#: and its widened twin (``ctx.widened``), whose reference reaches the budget.
 SUNLESS = (common.load, common.choose_estimators, cases.render_seeds, common.build_reference)
+WIDENED = (common.load, common.choose_estimators, cases.render_seeds, cases.widened_reference)
 SWEEP_POINT = (common.load, common.choose_estimators, cases.render_seeds,
                common.build_reference, cases.tail_numbers, common.release)
 
@@ -104,6 +110,11 @@ def failure_case(run: Run, plan: profiles.FailureCase,
         run_stages(SUNLESS, ctx.sunless)
         cases.split_sun(ctx)
         common.release(ctx.sunless)
+        cases.widened_twin(ctx)
+    if ctx.widened is not None:
+        run_stages(WIDENED, ctx.widened)
+        cases.split_widened(ctx)
+        common.release(ctx.widened)
     pixels = int(np.prod(ctx.reference.mean.shape[:2]))
     ctx.checks = case_checks.judge(ctx.id, ctx.rows, ctx.info.contains, pixels)
     cases.save_evidence(ctx)

@@ -9,13 +9,14 @@ Failure-case verdicts (:func:`case_verdict`): ``fine``; ``heavy-tailed``
 :func:`tails.is_heavy`); ``refused``; ``biased (opt-in)``; ``biased (by
 design)`` (a quadrature's bias, reported with its numbers, not failed);
 ``biased`` (a rejection that counts by the rules of evidence, confirmed on a
-fresh batch, or a bias on the map without its sun, tested by the same
-rules); ``non-finite/negative``; and, only when the sequential test's budget
-is spent (stages/sequential.py), ``inconclusive: heavy tail`` (every
-rejection is one a tail can explain at the samples reached, or no rejection
-but an interval on the relative bias wider than ±ε) or ``inconclusive: not
-replicated`` (a rejection that counted did not come back on a fresh batch,
-and no budget was left to go on).
+fresh batch, or a bias on the map without its sun or with it widened, tested
+by the same rules); ``non-finite/negative``. Where the sequential test's
+budget is spent on a real sun (stages/sequential.py), the widened twin
+decides (its pass: ``heavy-tailed``; its fail: ``biased``); otherwise
+``inconclusive: heavy tail`` (every rejection is one a tail can explain at
+the samples reached, or no rejection but an interval on the relative bias
+wider than ±ε) or ``inconclusive: not replicated`` (a rejection that counted
+did not come back on a fresh batch, and no budget was left to go on).
 """
 
 from __future__ import annotations
@@ -87,14 +88,33 @@ def verdict_line(v: str, n) -> str:
                         f"{t.samples_per_pixel or n.samples_per_pixel} samples"
                         if hits is not None else
                         "is hit an unknown number of times (its facts give no largest pdf)"))
+            if s.widened_outcome:
+                text += (f"; with the sun widened to {s.widened['solid_angle']:.2g} sr: "
+                         f"{s.widened_outcome} ({s.widened_reason})")
     elif v == NOT_REPLICATED:
         text += (f"; {t.reason} ({t.rejected_pixels} px rejected, pooled p = "
                  f"{min(t.pooled_p):.3g})")
     elif v in ("biased", BY_DESIGN) and n.sun is not None and not n.sun.sunless_passed:
         text += f"; biased without the sun too: {n.sun.sunless_reason}; {n.sun.sunless_test}"
+    elif n.sun is not None and n.sun.widened_outcome in ("pass", "fail"):
+        text += "; " + split_line(n.sun, t)
     elif t is not None:
         text += f"; {t.reason + ' — ' if t.reason else ''}{t.test}"
     return text
+
+
+def split_line(s, t) -> str:
+    """How the split map decided a case the real sun left undecided."""
+    w = s.widened
+    real = (f"the real sun ({s.sun['solid_angle']:.2g} sr, {100 * s.sun_share_of_image:.0f} % "
+            f"of path's image) is hit too rarely to decide in "
+            f"{t.samples_per_pixel} samples per pixel")
+    if s.widened_outcome == "fail":
+        return (f"{real}; with the sun widened to {w['solid_angle']:.2g} sr at its own "
+                f"radiance it is biased: {s.widened_reason}")
+    return (f"decided on the split map: {real}; without it {s.sunless_reason}; with it "
+            f"widened to {w['solid_angle']:.2g} sr at its own radiance "
+            f"{s.widened_reason}")
 
 
 def judge_sweep(case_id: str, rows: list[SweepRow], sweep: Sweep) -> list[Check]:
@@ -139,4 +159,11 @@ def _case_verdict(row, pixels: int) -> str:
         return "heavy-tailed" if heavy else "fine"
     if t.outcome == "fail":
         return "biased"                  # counted by the rules, confirmed on a fresh batch
-    return NOT_REPLICATED if t.replicated is False else HEAVY    # the budget is spent
+    # the budget is spent on the real sun: the split map decides where it can
+    # (without the sun passed; with it widened, envmaps/sun.py)
+    widened = sun_.widened_outcome if sun_ is not None else None
+    if widened == "fail":
+        return "biased"
+    if widened == "pass":
+        return "heavy-tailed"
+    return NOT_REPLICATED if t.replicated is False else HEAVY

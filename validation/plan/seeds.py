@@ -19,7 +19,9 @@ bench`, which used 0, 1, …, has its own stream now):
     failure          700 000 + i         (K seeds per failure case)
     sunless          750 000 + i         (the same case on its map without the sun)
     replication      800 000 + i         (reserved: fresh renders that repeated a
-                     rejection before the sequential tests took that over)
+                     rejection before the sequential tests took that over; 20 000)
+    widened          820 000 + i         (the same case with its sun widened)
+    widened_sequential  look j, render i  →  830 000 + 1 000·j + i
     sunless_replication 850 000 + i      (reserved, likewise)
     sequential       look j, render i  →  860 000 + 1 000·j + i  (the batches a sequential
                      test adds where the evidence is thin, stages/sequential.py; 20 looks)
@@ -91,7 +93,9 @@ STREAMS = {
     "learning": Layout(680_000, 1_000, blocks=20),
     "failure": Layout(700_000, 50_000),
     "sunless": Layout(750_000, 50_000),
-    "replication": Layout(800_000, 50_000),
+    "replication": Layout(800_000, 20_000),
+    "widened": Layout(820_000, 10_000),
+    "widened_sequential": Layout(830_000, 1_000, blocks=20),
     "sunless_replication": Layout(850_000, 10_000),
     "sequential": Layout(860_000, 1_000, blocks=20),
     "sunless_sequential": Layout(880_000, 1_000, blocks=20),

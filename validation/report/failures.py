@@ -141,6 +141,11 @@ def _failure_row(case: CaseResult, est, colours: dict) -> str:
         evidence.append(t.reason)
     if n.sun is not None and n.sun.sunless_reason and not n.sun.sunless_passed:
         evidence.append(f"without the sun: {n.sun.sunless_reason}")
+    if n.sun is not None and n.sun.widened_outcome:
+        w = n.sun.widened
+        evidence.append(f"with the sun widened to {w['solid_angle']:.2g} sr at its own "
+                        f"radiance: {'BIASED: ' if n.sun.widened_outcome == 'fail' else ''}"
+                        f"{n.sun.widened_reason}")
     if t is not None and not t.passed:
         again = ("" if t.replicated is None else
                  f", {t.replicated_pixels} replicated in fresh renders"

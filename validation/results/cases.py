@@ -59,7 +59,7 @@ class BatchTest(Outcome):
 
 @dataclass(kw_only=True)
 class SunSplit:
-    """The same estimator re-tested on the map without its sun."""
+    """The same estimator re-tested on the map without its sun (and with it widened)."""
 
     sun: dict                      # envmaps.sun.split facts: solid_angle, texels, …
     sunless_passed: bool
@@ -69,6 +69,13 @@ class SunSplit:
     sun_share_of_image: float
     sunless_outcome: str = ""      # checks.evidence.bias_outcome there (minor version 3)
     sunless_reason: str = ""
+    #: The same estimator tested on the map with its sun widened
+    #: (envmaps.sun.widen facts: solid_angle, texels, radiance), where the real
+    #: sun's test was inconclusive and the sunless one passed (minor version 12).
+    widened: dict | None = optional()
+    widened_outcome: str | None = optional()
+    widened_reason: str | None = optional()
+    widened_test: str | None = optional()
 
 
 @dataclass(kw_only=True)

@@ -34,7 +34,10 @@ VERSION = 1
 #: the scene, and every candidate's held-out error.
 #: 11: per scene ``learning`` (estimators that learn their pdf: relMSE at a
 #: fixed spp against the training passes before it).
-MINOR_VERSION = 11
+#: 12: a heavy-tail failure row's sun split may carry ``widened``,
+#: ``widened_outcome``, ``widened_reason`` and ``widened_test``: the same test
+#: with the map's sun widened, where the real sun's was inconclusive.
+MINOR_VERSION = 12
 
 
 @dataclass(kw_only=True)

@@ -7,7 +7,10 @@ batch-means test, replicated where the rules of evidence count a rejection.
 On a map with a sun, the estimators whose test did not pass are tested again
 on the map without its sun: the **sunless twin**, a context of its own that
 the pipeline runs through :data:`~mcillum.validation.pipeline.SUNLESS`
-(rendering is linear in the map, envmaps/sun.py). A parameter sweep runs a
+(rendering is linear in the map, envmaps/sun.py). Those the real sun left
+inconclusive and that passed without it are tested once more on the map
+with its sun **widened** to a disc the samples hit (envmaps/sun.py:
+``widen``), the **widened twin**, run the same way. A parameter sweep runs a
 case's renders at every value and reports its rows along the parameter.
 The verdicts are checks/cases.py's.
 """
@@ -24,9 +27,9 @@ from ..checks import evidence
 from ..plan import seeds
 from ..results import (BatchTest, CaseReference, CaseResult, CaseRow, SunSplit, Sweep,
                        SweepRow, TailNumbers)
-from ..run import jobs, renders, stacks
+from ..run import jobs, references, renders, stacks
 from ..stats import metrics, statistics, tails
-from . import sequential
+from . import common, sequential
 from .common import REFERENCE, compile_kernels, kept_file, scene_summary
 
 ALPHA = statistics.ALPHA
@@ -211,6 +214,59 @@ def split_sun(ctx) -> None:
                 name, samples * _directions(ctx, name), ctx.sun["solid_angle"]),
             sun_share_of_image=1.0 - sunless_mean / image_mean, sunless_outcome=test.outcome,
             sunless_reason=test.reason)
+
+
+# ----------------------------- The widened sun ---------------------------------
+
+def widened_twin(ctx) -> None:
+    """``ctx.widened``: the case on its map with the sun widened
+    (envmaps/sun.py, :func:`~mcillum.envmaps.sun.widen`), for the estimators
+    whose test on the real map the budget left inconclusive, that passed
+    without the sun, and that do not sample the emitters (an estimator that
+    does finds the sun by construction); with `path`, on seed streams of its
+    own; None unless there are such estimators."""
+    tested = [n for n, row in ctx.rows.items()
+              if row.numbers and row.numbers.test and row.numbers.test.outcome == "inconclusive"
+              and row.numbers.sun is not None and row.numbers.sun.sunless_outcome == "pass"
+              and "delta_emitter" not in registry.facts(n).reachable]
+    if not tested:
+        return
+    widened_map, facts = sun.widened(ctx.resolved["envmap"])
+    ctx.widened = ctx.derive([*tested, REFERENCE], label=f"{ctx.id} widened sun",
+                             streams={"renders": "widened",
+                                      "sequential": "widened_sequential"},
+                             envmap=widened_map)
+    for name in tested:
+        ctx.rows[name].numbers.sun.widened = facts
+
+
+def widened_reference(ctx) -> None:
+    """`path`'s reference of the widened twin (common.build_reference), then
+    rendered on until its spp no longer caps the test's budget
+    (sequential.REFERENCE_LEAD): the disc is hit often enough for the budget
+    to decide, and a reference of the usual precision stopped sun_sky's at
+    half of it (image mean ±4.5 % at 131 072 samples per pixel)."""
+    common.build_reference(ctx)
+    ref = ctx.reference
+    budget = ctx.plan.spp * ctx.plan.seeds * ctx.run.growth(ctx.run.sequential.case_budget)
+    needed = budget / sequential.REFERENCE_LEAD
+    if ref.spp < needed:
+        variance = float(ref.variance_of_mean.mean())     # (as references.ensure reads it)
+        ctx.reference = references.ensure(ctx, variance * ref.spp / needed)
+
+
+def split_widened(ctx) -> None:
+    """Each estimator of the widened twin tested there by the same rules of
+    evidence; the disc is hit often, so it is a tail like any other (seen in
+    the fireflies), not an unseen sun."""
+    sub = ctx.widened
+    if sub is None:
+        return
+    for name in sub.estimators[:-1]:        # those tested (the last is path, the reference)
+        test = settled_test(sub, name, sub.stacks[ctx.plan.spp][name].images)
+        split = ctx.rows[name].numbers.sun
+        split.widened_outcome, split.widened_reason = test.outcome, test.reason
+        split.widened_test = test.test
 
 
 def _directions(ctx, name: str) -> int:

@@ -87,6 +87,7 @@ class Context:
     sunless: "Context" = None       # cases.sunless_twin: the case on its map without the sun
     sun: dict = None                # cases.test_bias: the sun's facts (envmaps.sun)
     sunless_map: str = None         # cases.test_bias: the map without its sun (a file)
+    widened: "Context" = None       # cases.widened_twin: the case with its sun widened
     sweep_rows: list = field(default_factory=list)    # cases.sweep_rows: SweepRow per estimator
     display: "Context" = None       # speed.display: the scene at the display resolution
     speed: object = None            # speed.measure_speed: results.Speed
