@@ -43,8 +43,8 @@ def probe_refusals(ctx) -> None:
     ``allow_unreachable=true``, so that the bias the user opts into is measured."""
     for name in ctx.estimators:
         error = None if name == REFERENCE else _refusal(ctx, name)
-        if error is None:
-            ctx.integrators[name] = jobs.make(name, ctx.params)
+        if error is None:       # (a user's direct-light integrator may take no max_depth)
+            ctx.integrators[name] = jobs.make_taking(name, ctx.params)
             continue
         ctx.refused[name] = error
         if ctx.plan.group == "unreachable":
@@ -54,7 +54,7 @@ def probe_refusals(ctx) -> None:
 def _refusal(ctx, name: str) -> UnreachableContentError | None:
     """The estimator's own scene check, as its render would run it first
     (nothing is rendered)."""
-    integrator = renders.make_integrator(name, ctx.params)
+    integrator, _ = renders.make_taking(name, ctx.params)
     if not registry.is_estimator(integrator):
         return None
     try:
