@@ -135,6 +135,27 @@ def test_the_widened_sun_decides_what_the_real_sun_left_open(widened, verdict):
     assert case_checks.case_verdict(_sun_row("pass", sunless="fail"), 64) == "biased"
 
 
+def test_a_partly_hidden_source_excuses_dark_pixels_not_a_dark_image():
+    """On the widened sun's map a pixel that sees the disc through a sliver
+    is darker until its hits arrive: a fail resting on such pixels renders
+    on; one whose image mean is darker stays a fail; brighter pixels count."""
+    from types import SimpleNamespace
+
+    from mcillum.validation.checks import evidence
+
+    c = SimpleNamespace(pixel_t=np.array([[-9.0, 0.5], [0.2, 0.1]]))
+    dark = np.array([[True, False], [False, False]])
+
+    def fail(pooled=False, up=False):
+        return evidence.Decision(outcome="fail", reason="darker at 1 px", pixels=dark.copy(),
+                                 pooled=np.array([pooled, False, False]), counted_up=up)
+
+    d = evidence.partly_hidden(fail(), c)
+    assert d.outcome == "inconclusive" and not d.pixels.any() and "sliver" in d.reason
+    assert evidence.partly_hidden(fail(pooled=True), c).outcome == "fail"
+    assert evidence.partly_hidden(fail(up=True), c).outcome == "fail"
+
+
 # ---------------------------- Verdicts on cases -------------------------------
 
 QUICK = {c.id: c for c in profiles.QUICK.failures}

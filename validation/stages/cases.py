@@ -136,7 +136,8 @@ def _reader(ctx, name: str):
     the estimator's largest pdf expects fewer than SUN_HITS direct hits per
     pixel in the samples so far (N·Ω·max p; or it declares no largest pdf),
     no downward rejection counts (evidence.unseen_sun) and the test renders
-    on."""
+    on. On the widened sun's map (``ctx.disc``) no downward pixel rejection
+    counts (evidence.partly_hidden)."""
     found = ctx.stacks[ctx.plan.spp]
     path_events = (tails.tail_events([found[REFERENCE].images], ctx.reference.mean)[0]
                    if REFERENCE in found else None)
@@ -148,6 +149,8 @@ def _reader(ctx, name: str):
 
     def read(comparison, batches, look):
         d = decide(comparison, batches, look)
+        if ctx.disc:
+            return evidence.partly_hidden(d, comparison)
         if ctx.sun is None or samples_emitters:
             return d
         hits = expected_sun_hits(name, sequential.samples(batches) * directions,
@@ -229,13 +232,14 @@ def widened_twin(ctx) -> None:
               if row.numbers and row.numbers.test and row.numbers.test.outcome == "inconclusive"
               and row.numbers.sun is not None and row.numbers.sun.sunless_outcome == "pass"
               and "delta_emitter" not in registry.facts(n).reachable]
-    if not tested:
+    if not tested or not ctx.sun or not ctx.sun["texels"]:     # (no sun to widen)
         return
     widened_map, facts = sun.widened(ctx.resolved["envmap"])
     ctx.widened = ctx.derive([*tested, REFERENCE], label=f"{ctx.id} widened sun",
                              streams={"renders": "widened",
                                       "sequential": "widened_sequential"},
                              envmap=widened_map)
+    ctx.widened.disc = True
     for name in tested:
         ctx.rows[name].numbers.sun.widened = facts
 
@@ -257,8 +261,9 @@ def widened_reference(ctx) -> None:
 
 def split_widened(ctx) -> None:
     """Each estimator of the widened twin tested there by the same rules of
-    evidence; the disc is hit often, so it is a tail like any other (seen in
-    the fireflies), not an unseen sun."""
+    evidence, but for the pixels that see the disc only through a sliver
+    (evidence.partly_hidden): the disc is hit often over the image, so its
+    image mean decides."""
     sub = ctx.widened
     if sub is None:
         return

@@ -88,6 +88,9 @@ class Context:
     sun: dict = None                # cases.test_bias: the sun's facts (envmaps.sun)
     sunless_map: str = None         # cases.test_bias: the map without its sun (a file)
     widened: "Context" = None       # cases.widened_twin: the case with its sun widened
+    #: cases.widened_twin: this context's map holds the widened sun (some
+    #: pixels see it only through a sliver: checks.evidence.partly_hidden)
+    disc: bool = False
     sweep_rows: list = field(default_factory=list)    # cases.sweep_rows: SweepRow per estimator
     display: "Context" = None       # speed.display: the scene at the display resolution
     speed: object = None            # speed.measure_speed: results.Speed
