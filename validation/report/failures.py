@@ -130,6 +130,12 @@ def _failure_row(case: CaseResult, est, colours: dict) -> str:
     if n.missing_fraction is not None:
         evidence.append(f"BIASED by allow_unreachable=true: {100 * n.missing_fraction:.1f} % "
                         "of path's image mean missing")
+    decided = n.sun is not None and n.sun.widened_outcome in ("pass", "fail")
+    if decided:                     # the widened sun decided: say so first
+        w = n.sun.widened
+        evidence.append(f"decided with the sun widened to {w['solid_angle']:.2g} sr at its "
+                        f"own radiance: {'BIASED: ' if n.sun.widened_outcome == 'fail' else ''}"
+                        f"{n.sun.widened_reason}")
     if n.sun is not None:
         hits = n.sun.expected_sun_hits_per_pixel
         evidence.append(
@@ -138,13 +144,11 @@ def _failure_row(case: CaseResult, est, colours: dict) -> str:
             + ("not biased" if n.sun.sunless_passed else "BIASED")
             + (f"; at most {hits:.2g} sun hits/pixel" if hits is not None else ""))
     if t is not None and t.reason and t.outcome != "pass":
-        evidence.append(t.reason)
+        evidence.append(("the real sun: " if decided else "") + t.reason)
     if n.sun is not None and n.sun.sunless_reason and not n.sun.sunless_passed:
         evidence.append(f"without the sun: {n.sun.sunless_reason}")
-    if n.sun is not None and n.sun.widened_outcome:
-        w = n.sun.widened
-        evidence.append(f"with the sun widened to {w['solid_angle']:.2g} sr at its own "
-                        f"radiance: {'BIASED: ' if n.sun.widened_outcome == 'fail' else ''}"
+    if n.sun is not None and n.sun.widened_outcome and not decided:
+        evidence.append(f"with the sun widened to {n.sun.widened['solid_angle']:.2g} sr: "
                         f"{n.sun.widened_reason}")
     if t is not None and not t.passed:
         again = ("" if t.replicated is None else
