@@ -78,12 +78,17 @@ def without_sun(path: str | os.PathLike, factor: float = SUN_FACTOR) -> tuple[st
     and the facts of :func:`split`."""
     rgb, _ = safety.load(path)
     sunless, facts = split(rgb, factor)
-    st = os.stat(path)
-    key = {"name": "sunless", "source": os.path.abspath(path), "size": st.st_size,
-           "mtime": st.st_mtime, "factor": factor}
-    return catalog.cached(key, lambda: sunless,
-                          (split, procedural.cell_solid_angles, safety.sanitise)), facts
+    return _cached(path, "sunless", {"factor": factor}, sunless,
+                   (split, procedural.cell_solid_angles, safety.sanitise)), facts
 
+
+def _cached(path, name: str, params: dict, rgb: np.ndarray, code) -> str:
+    """Path of the cached map ``rgb`` made from the map at ``path`` by
+    ``code`` with ``params`` (catalog.cached, keyed by the source file too)."""
+    st = os.stat(path)
+    key = {"name": name, "source": os.path.abspath(path), "size": st.st_size,
+           "mtime": st.st_mtime, **params}
+    return catalog.cached(key, lambda: rgb, code)
 
 
 def widen(rgb: np.ndarray, solid_angle: float = WIDENED_SOLID_ANGLE,
@@ -123,9 +128,6 @@ def widened(path: str | os.PathLike, solid_angle: float = WIDENED_SOLID_ANGLE,
     widened (:func:`widen`), and the facts."""
     rgb, _ = safety.load(path)
     out, facts = widen(rgb, solid_angle, factor)
-    st = os.stat(path)
-    key = {"name": "widened_sun", "source": os.path.abspath(path), "size": st.st_size,
-           "mtime": st.st_mtime, "factor": factor, "solid_angle": solid_angle}
-    return catalog.cached(key, lambda: out,
-                          (widen, procedural.directions, procedural.cell_solid_angles,
-                           safety.sanitise)), facts
+    return _cached(path, "widened_sun", {"factor": factor, "solid_angle": solid_angle}, out,
+                   (widen, procedural.directions, procedural.cell_solid_angles,
+                    safety.sanitise)), facts

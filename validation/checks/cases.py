@@ -89,32 +89,40 @@ def verdict_line(v: str, n) -> str:
                         if hits is not None else
                         "is hit an unknown number of times (its facts give no largest pdf)"))
             if s.widened_outcome:
-                text += (f"; with the sun widened to {s.widened['solid_angle']:.2g} sr: "
-                         f"{s.widened_outcome} ({s.widened_reason})")
+                text += f"; {widened_words(s)}"
     elif v == NOT_REPLICATED:
         text += (f"; {t.reason} ({t.rejected_pixels} px rejected, pooled p = "
                  f"{min(t.pooled_p):.3g})")
     elif v in ("biased", BY_DESIGN) and n.sun is not None and not n.sun.sunless_passed:
         text += f"; biased without the sun too: {n.sun.sunless_reason}; {n.sun.sunless_test}"
-    elif n.sun is not None and n.sun.widened_outcome in ("pass", "fail"):
+    elif widened_decided(n.sun):
         text += "; " + split_line(n.sun, t)
     elif t is not None:
         text += f"; {t.reason + ' — ' if t.reason else ''}{t.test}"
     return text
 
 
+def widened_decided(s) -> bool:
+    """Did the widened sun's test decide (pass or fail) a case whose sun split
+    is ``s`` (a results.SunSplit, or None)?"""
+    return s is not None and s.widened_outcome in ("pass", "fail")
+
+
+def widened_words(s) -> str:
+    """The widened sun's test of sun split ``s`` in words (also the report's)."""
+    return (f"with the sun widened to {s.widened['solid_angle']:.2g} sr at its own radiance: "
+            f"{'BIASED: ' if s.widened_outcome == 'fail' else ''}{s.widened_reason}")
+
+
 def split_line(s, t) -> str:
     """How the split map decided a case the real sun left undecided."""
-    w = s.widened
     real = (f"the real sun ({s.sun['solid_angle']:.2g} sr, {100 * s.sun_share_of_image:.0f} % "
             f"of path's image) is hit too rarely to decide in "
             f"{t.samples_per_pixel} samples per pixel")
     if s.widened_outcome == "fail":
-        return (f"{real}; with the sun widened to {w['solid_angle']:.2g} sr at its own "
-                f"radiance it is biased: {s.widened_reason}")
-    return (f"decided on the split map: {real}; without it {s.sunless_reason}; with it "
-            f"widened to {w['solid_angle']:.2g} sr at its own radiance "
-            f"{s.widened_reason}")
+        return f"{real}; {widened_words(s)}"
+    return (f"decided on the split map: {real}; without it {s.sunless_reason}; "
+            f"{widened_words(s)}")
 
 
 def judge_sweep(case_id: str, rows: list[SweepRow], sweep: Sweep) -> list[Check]:

@@ -11,6 +11,7 @@ import numpy as np
 
 from mcillum import files, images
 
+from ..checks import cases as case_checks
 from ..checks import evidence
 from ..results import CaseResult, Results, layout
 from ..stats import tails
@@ -130,12 +131,9 @@ def _failure_row(case: CaseResult, est, colours: dict) -> str:
     if n.missing_fraction is not None:
         evidence.append(f"BIASED by allow_unreachable=true: {100 * n.missing_fraction:.1f} % "
                         "of path's image mean missing")
-    decided = n.sun is not None and n.sun.widened_outcome in ("pass", "fail")
+    decided = case_checks.widened_decided(n.sun)
     if decided:                     # the widened sun decided: say so first
-        w = n.sun.widened
-        evidence.append(f"decided with the sun widened to {w['solid_angle']:.2g} sr at its "
-                        f"own radiance: {'BIASED: ' if n.sun.widened_outcome == 'fail' else ''}"
-                        f"{n.sun.widened_reason}")
+        evidence.append(f"decided {case_checks.widened_words(n.sun)}")
     if n.sun is not None:
         hits = n.sun.expected_sun_hits_per_pixel
         evidence.append(
@@ -148,8 +146,7 @@ def _failure_row(case: CaseResult, est, colours: dict) -> str:
     if n.sun is not None and n.sun.sunless_reason and not n.sun.sunless_passed:
         evidence.append(f"without the sun: {n.sun.sunless_reason}")
     if n.sun is not None and n.sun.widened_outcome and not decided:
-        evidence.append(f"with the sun widened to {n.sun.widened['solid_angle']:.2g} sr: "
-                        f"{n.sun.widened_reason}")
+        evidence.append(case_checks.widened_words(n.sun))
     if t is not None and not t.passed:
         again = ("" if t.replicated is None else
                  f", {t.replicated_pixels} replicated in fresh renders"

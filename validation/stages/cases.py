@@ -143,9 +143,7 @@ def _reader(ctx, name: str):
                    if REFERENCE in found else None)
     decide = evidence.decider(ctx.reference.mean, path_events)
     directions = _directions(ctx, name)
-    # an estimator that samples the emitters (it reaches point lights) finds
-    # the sun by construction: it has no unseen sun to plead
-    samples_emitters = "delta_emitter" in registry.facts(name).reachable
+    samples_emitters = _samples_emitters(name)
 
     def read(comparison, batches, look):
         d = decide(comparison, batches, look)
@@ -231,7 +229,7 @@ def widened_twin(ctx) -> None:
     tested = [n for n, row in ctx.rows.items()
               if row.numbers and row.numbers.test and row.numbers.test.outcome == "inconclusive"
               and row.numbers.sun is not None and row.numbers.sun.sunless_outcome == "pass"
-              and "delta_emitter" not in registry.facts(n).reachable]
+              and not _samples_emitters(n)]
     if not tested or not ctx.sun or not ctx.sun["texels"]:     # (no sun to widen)
         return
     widened_map, facts = sun.widened(ctx.resolved["envmap"])
@@ -272,6 +270,13 @@ def split_widened(ctx) -> None:
         split = ctx.rows[name].numbers.sun
         split.widened_outcome, split.widened_reason = test.outcome, test.reason
         split.widened_test = test.test
+
+
+def _samples_emitters(name: str) -> bool:
+    """Does estimator ``name`` sample the emitters (it reaches point lights)?
+    Then it finds the sun by construction: it has no unseen sun to plead,
+    and no widened sun is needed to decide it."""
+    return "delta_emitter" in registry.facts(name).reachable
 
 
 def _directions(ctx, name: str) -> int:
