@@ -112,15 +112,26 @@ def test_ranking_ties_only_overlapping_intervals():
 
 def test_budgets_grow_until_the_fixed_cost_is_a_tenth():
     """speed.budget_spp: `path`'s spp values grow by one factor until every
-    estimator's fixed cost is at most 10 % of the smallest budget, keeping
-    their ratios, up to MAX_SCALE."""
+    estimator's fixed cost is at most 10 % of the largest budget (where
+    efficiency is read), keeping their ratios, up to MAX_SCALE."""
     path = costs.fit_cost({4: [A + B * 4] * 3, 16: [A + B * 16] * 3})
-    slow_start = costs.fit_cost({4: [0.02 + B * 4] * 3, 16: [0.02 + B * 16] * 3})
+    slow_start = costs.fit_cost({4: [0.04 + B * 4] * 3, 16: [0.04 + B * 16] * 3})
     spp = speed.budget_spp({"path": path, "other": slow_start}, (4, 8, 16))
     assert spp[1] == 2 * spp[0] and spp[2] == 4 * spp[0]
-    assert costs.seconds_at(path, spp[0]) >= 10 * 0.02 > costs.seconds_at(path, spp[0] - 1)
-    cheap = costs.fit_cost({4: [5e-4 + B * 4] * 3, 16: [5e-4 + B * 16] * 3})
+    assert costs.seconds_at(path, spp[2]) >= 10 * 0.04 > costs.seconds_at(path, spp[2] - 4)
+    # an estimator whose sample costs 20× path's: at least MIN_SPP of them fit
+    # in the smallest budget
+    slow = costs.fit_cost({4: [0.003 + 20 * B * 4] * 3, 16: [0.003 + 20 * B * 16] * 3})
+    spp = speed.budget_spp({"path": path, "other": slow}, (4, 16))
+    def samples(seconds):
+        return (seconds - slow.fixed_s) / slow.per_spp_s
+    assert samples(costs.seconds_at(path, spp[0])) >= speed.MIN_SPP - 1e-9
+    assert samples(costs.seconds_at(path, spp[0] - 1)) < speed.MIN_SPP
+    cheap = costs.fit_cost({4: [5e-4 + 8 * B * 4] * 3, 16: [5e-4 + 8 * B * 16] * 3})
     assert speed.budget_spp({"path": cheap}, (4, 8)) == [4, 8]  # already ≤ 10 %: as given
+    # the smallest budget is at least MIN_BUDGET, whatever the fixed costs
+    spp = speed.budget_spp({"path": path}, (4, 8))
+    assert costs.seconds_at(path, spp[0]) >= speed.MIN_BUDGET > costs.seconds_at(path, spp[0] - 1)
     hopeless = costs.fit_cost({4: [10.0 + 1e-9 * 4] * 3, 16: [10.0 + 1e-9 * 16] * 3})
     assert speed.budget_spp({"path": path, "other": hopeless}, (4,)) == [4 * speed.MAX_SCALE]
 

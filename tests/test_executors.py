@@ -96,7 +96,8 @@ class _Wide(executors.Local):
 
 
 def _reference(tmp_path, executor, targets):
-    profile = profiles.Profile(name="test", runs=(), reference_spp_per_pass=16)
+    profile = profiles.Profile(name="test", runs=(), reference_spp_per_pass=16,
+                               reference_max_spp=1 << 24)
     plan = profiles.SceneRun(scene="furnace_sphere", res=4, ladder=(1,), renders=2, max_depth=2)
     ctx = Context(Run(profile, "llvm_ad_rgb", str(tmp_path), str(tmp_path / "out"),
                       executor=executor), plan, "furnace_sphere", ["path"])

@@ -242,13 +242,24 @@ def test_rerun_resumes_without_rendering(llvm, tiny_profile, tmp_path, monkeypat
 def furnace(tmp_path, res=4, spp_per_pass=16) -> Context:
     """The loaded furnace scene as a validation context (max_depth 2), with
     the reference cache in ``tmp_path``."""
-    profile = profiles.Profile(name="test", runs=(), reference_spp_per_pass=spp_per_pass)
+    profile = profiles.Profile(name="test", runs=(), reference_spp_per_pass=spp_per_pass,
+                               reference_max_spp=1 << 24)
     plan = profiles.SceneRun(scene="furnace_sphere", res=res, ladder=(1,), renders=2,
                              max_depth=2)
     ctx = Context(Run(profile, "llvm_ad_rgb", str(tmp_path), str(tmp_path / "out")), plan,
                   "furnace_sphere", ["path"])
     common.load(ctx)
     return ctx
+
+
+def test_small_images_get_larger_reference_passes():
+    """A pass holds at least PASS_SAMPLES samples, its spp a doubling of the
+    profile's, unless MIN_PASSES of them would pass the spp cap."""
+    assert references.pass_spp(64, 128 * 128, 1 << 18) == 64
+    assert references.pass_spp(64, 24 * 24, 1 << 18) == 128
+    assert references.pass_spp(64, 8 * 8, 1 << 18) == 1024
+    assert references.pass_spp(64, 8 * 8, 1 << 14) == 256          # 32 × 256 = the cap
+    assert references.pass_spp(64, 8 * 8, 1 << 10) == 64           # never below the profile's
 
 
 def test_reference_is_extended_not_rerendered(llvm, tmp_path):

@@ -18,8 +18,8 @@ class Display:
     """The speed-and-images stage of a scene (stages/speed.py): the
     resolution a person judges the images at, and the time budgets, each the
     time `path` needs for one of ``path_spp`` (all scaled by one factor
-    until the fixed cost of a render is at most 10 % of the smallest
-    budget)."""
+    until the fixed cost of a render is at most 10 % of the largest
+    budget, where efficiency is read)."""
 
     res: int
     path_spp: tuple[int, ...] = (4, 8, 16)
@@ -142,6 +142,7 @@ class Profile:
     #: smallest RMSE of all costs 100× or more) and adds 6 % to path's relMSE,
     #: recorded as ``reference_relmse``.
     display_reference_fraction: float = 0.25
+    #: The smallest pass: small images get larger ones (run/references.pass_spp).
     reference_spp_per_pass: int = 64
     reference_max_spp: int = 1 << 16
     reference_max_seconds: float = 60.0

@@ -43,6 +43,10 @@ from . import jobs, renders
 #: pixel's variance often enough to fail correct estimators
 #: (docs/measurements.md, 2026-11-22).
 MIN_PASSES = 32
+#: Samples of one pass at least (pixels × spp): at 8² px a 64-spp pass of
+#: `path` took 2.5-3 ms, most of it the fixed cost of a launch (38-46 µs per
+#: spp against 6-19 µs at 1 024 spp; docs/measurements.md, 2026-12-03).
+PASS_SAMPLES = 1 << 16
 FORMAT_VERSION = 1
 
 
@@ -173,9 +177,22 @@ def target_for(stacks, fraction: float = 0.1) -> float:
     return target_variance(np.sqrt(min(noise)) if noise else 0.0, fraction)
 
 
+def pass_spp(smallest: int, pixels: int, max_spp: int) -> int:
+    """The samples per pixel of one pass: ``smallest`` (the profile's
+    ``reference_spp_per_pass``), doubled until a pass holds PASS_SAMPLES
+    samples over ``pixels`` pixels, so that small images are not rendered
+    in launches that cost mostly their fixed cost; never so large that
+    MIN_PASSES passes exceed ``max_spp`` (the profile's cap)."""
+    spp = max(1, int(smallest))
+    while spp * max(pixels, 1) < PASS_SAMPLES and 2 * spp * MIN_PASSES <= max_spp:
+        spp *= 2
+    return spp
+
+
 def ensure(ctx, target: float) -> Reference:
     """Load or render the reference of context ``ctx`` (its scene, $-parameters,
-    max_depth, variant and cache; the profile's pass size and caps) until
+    max_depth, variant and cache; the pass size :func:`pass_spp` gives, the
+    profile's caps) until
     mean(variance_of_mean) ≤ ``target``.
 
     Stops early at the profile's ``reference_max_spp`` total samples per pixel
@@ -189,7 +206,9 @@ def ensure(ctx, target: float) -> Reference:
     before more passes are rendered (a time cap is not reproducible anyway).
     """
     profile = ctx.run.profile
-    spp_per_pass, max_spp = profile.reference_spp_per_pass, profile.reference_max_spp
+    max_spp = profile.reference_max_spp
+    w, h = ctx.scene.sensors()[0].film().crop_size()
+    spp_per_pass = pass_spp(profile.reference_spp_per_pass, int(w) * int(h), max_spp)
     max_seconds, cache_dir = profile.reference_max_seconds, ctx.run.cache_dir
     key = ctx.scene_key                   # cache_key(), computed when the scene loaded
     ref = load(cache_dir, key)

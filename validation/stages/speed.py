@@ -12,7 +12,8 @@ in a sub-context of the scene's (``ctx.display``). Its stages, in order:
                        t = a + b·spp with bootstrap intervals (stats/costs.py)
     render_budgets     (stages/budgets.py) budgets T = `path`'s model at
                        ``path_spp`` (scaled by one factor until every a ≤ 10 %
-                       of the smallest T);
+                       of the largest T, where efficiency is read, and every
+                       estimator renders ≥ MIN_SPP spp in the smallest);
                        K renders per estimator and budget at
                        spp = max(1, round((T − a)/b)), interleaved, each timed;
                        an estimator whose median missed T by more than 10 %
@@ -67,6 +68,11 @@ from .budgets import job as _job
 PILOT_SPP = (1, 16)
 PILOT_ROUNDS = 3
 MAX_SCALE = 64             # budgets grow at most this much to outweigh the fixed cost
+MIN_SPP = 6                # samples per pixel every estimator gets at the smallest budget
+#: The smallest budget at least (seconds): below about 50 ms the same
+#: render's median time moved by 15-35 % between rounds here, and a quarter
+#: of such budgets were missed (docs/measurements.md, 2026-12-03).
+MIN_BUDGET = 0.06
 #: Per-render relMSE varying more than this (coefficient of variation): rare
 #: large errors carry it, and its interval may be too narrow. Synthetic
 #: lognormal σ = 1 and Pareto errors covered 80-90 % at K = 4; the quick
@@ -119,12 +125,23 @@ def time_costs(ctx) -> None:
 
 def budget_spp(models: dict, path_spp) -> list[int]:
     """`path`'s spp at each budget: the profile's ``path_spp`` scaled by one
-    factor (1 to MAX_SCALE) so that every estimator's fixed cost is at most
-    10 % of the smallest budget, its ratios kept."""
-    worst = max(max(m.fixed_s, 0.0) for m in models.values())
+    factor (1 to MAX_SCALE), its ratios kept, so that every estimator's fixed
+    cost is at most 10 % of the largest budget, where efficiency is read,
+    every estimator renders at least MIN_SPP samples in the smallest (one
+    sample is then at most a sixth of it, and whole samples can come within
+    ±10 % of it), and the smallest is at least MIN_BUDGET. At the smaller
+    budgets the fixed cost is a larger share, and the chart shows what it
+    costs there: held to 10 % of the smallest, the quick profile's budgets
+    were 2-4× larger (docs/measurements.md, 2026-12-03)."""
     path = models[REFERENCE]
-    needed = (worst / costs.MAX_OVERHEAD - path.fixed_s) / max(path.per_spp_s, 1e-12)
-    scale = min(max(1.0, needed / min(path_spp)), MAX_SCALE)
+    per_spp = max(path.per_spp_s, 1e-12)
+    worst = max(max(m.fixed_s, 0.0) for m in models.values())
+    largest = (worst / costs.MAX_OVERHEAD - path.fixed_s) / per_spp / max(path_spp)
+    # (path's spp defines the budgets: it renders them as they are)
+    slowest = max(max(m.fixed_s, 0.0) + MIN_SPP * m.per_spp_s
+                  for n, m in models.items() if n != REFERENCE) if len(models) > 1 else 0.0
+    smallest = (max(slowest, MIN_BUDGET) - path.fixed_s) / per_spp / min(path_spp)
+    scale = min(max(1.0, largest, smallest), MAX_SCALE)
     first = int(np.ceil(scale * min(path_spp)))
     return [int(round(first * s / min(path_spp))) for s in path_spp]
 

@@ -36,7 +36,8 @@ from .statistics import mean_interval
 
 BOOTSTRAP = 2000
 LEVEL = 0.95
-#: The fixed cost may be at most this share of a timed render's time.
+#: The fixed cost may be at most this share of the largest budget's time,
+#: where efficiency is read (stages/speed.budget_spp).
 MAX_OVERHEAD = 0.10
 
 
