@@ -198,6 +198,7 @@ def test_a_users_file_has_its_paths_made_absolute(tmp_path, monkeypatch):
                                              display=Display(res=64))
     (case,) = profile.failures
     assert case.scene == str(folder / "sub" / "glossy.xml")
+    assert case.id == "failures.glossy.glossy"      # a file's stem names it, not its path
     assert case.sweep == ("alpha", (0.5, 0.1))
     assert profile_files.read(folder / "mine.toml") == profile
 

@@ -186,6 +186,16 @@ def _located(entry: str, folder: str, suffix: str) -> str:
     return _absolute(entry, folder) if files.names_a_file(entry, suffix) else entry
 
 
+def _case_scene(entry: dict, folder: str) -> dict:
+    """A failure case's table with its scene made absolute where it is a
+    file, labelled by the file's stem unless it has a label: its id names
+    checks and folders of the run directory, where a path does not belong."""
+    scene = _located(entry["scene"], folder, ".xml")
+    if scene == entry["scene"] or entry.get("label"):
+        return {**entry, "scene": scene}
+    return {**entry, "scene": scene, "label": os.path.splitext(os.path.basename(scene))[0]}
+
+
 def _unique(items, where: str) -> None:
     seen = {}
     for i, item in enumerate(items):
@@ -229,8 +239,7 @@ def read(path) -> Profile:
                 raise _Invalid(f"scenes[{i}].scene: '{e['scene']}' is a file: a scene file "
                                "goes in scene_files = [...], compared by [user_scenes]")
         runs = tuple(SceneRun(**{"display": display, **e}) for e in entries)
-        failures = tuple(FailureCase(**{**e, "scene": _located(e["scene"], folder, ".xml")})
-                         for e in top.pop("failures", []))
+        failures = tuple(FailureCase(**_case_scene(e, folder)) for e in top.pop("failures", []))
         _unique(runs, "scenes")
         _unique(failures, "failures")
     except _Invalid as err:
