@@ -281,6 +281,19 @@ def data_images(html_text):
             for fmt, b64, w, h in found]
 
 
+def test_a_run_without_a_speed_stage_draws_no_summary(tmp_path):
+    """--no-speed or failure cases only: no empty "Summary across scenes"
+    chart and no link to it; with the stage, both."""
+    import dataclasses
+    res = synthetic_results()
+    timed = open(report.build(str(fake_run_dir(tmp_path / "a", res))), encoding="utf-8").read()
+    assert 'id="summary"' in timed and 'href="#summary"' in timed
+    untimed = dataclasses.replace(res, scenes=[dataclasses.replace(s, speed=None)
+                                               for s in res.scenes])
+    text = open(report.build(str(fake_run_dir(tmp_path / "b", untimed))), encoding="utf-8").read()
+    assert "Summary across scenes" not in text and 'href="#summary"' not in text
+
+
 def test_report_is_self_contained(tmp_path):
     page = report.build(str(fake_run_dir(tmp_path)))
     text = open(page, encoding="utf-8").read()

@@ -87,6 +87,11 @@ def _write(run_dir: str, res: Results) -> str:
                f"{n['pass']} of {len(checks)} checks pass, {n['inconclusive']} inconclusive, "
                f"{n['fail']} fail")
     toc = " · ".join(f"<a href='#{s.name}'>{s.name}</a>" for s in res.scenes)
+    # (a run without a speed stage, e.g. failure cases only, has nothing to sum up)
+    timed = any(s.speed is not None for s in res.scenes)
+    summary_link = ' · <a href="#summary">summary</a>' if timed else ""
+    summary = (f'<section id="summary"><h2>Summary across scenes</h2>'
+               f'{charts.efficiency_summary(res, colours)}</section>') if timed else ""
     by_design = {n for n, f in res.estimator_facts.items() if not f.unbiased}
     body = "".join(scene_section(s, run_dir, colours, by_design) for s in res.scenes)
     page = f"""<!DOCTYPE html>
@@ -99,7 +104,7 @@ variant <code>{html.escape(res.variant)}</code> · mitsuba {html.escape(res.mits
 drjit {html.escape(res.drjit_version)} · profile <b>{html.escape(res.profile)}</b> ·
 {_executor(res.executor)} · {html.escape(results.wall_text(res))} · report written {time.strftime('%Y-%m-%d %H:%M')}</p>
 <p class="verdict {verdict[0]}">{verdict[1]}</p>
-<p>Scenes: {toc} · <a href="#failures">where methods fail</a> · <a href="#summary">summary</a></p>
+<p>Scenes: {toc} · <a href="#failures">where methods fail</a>{summary_link}</p>
 <p>Each estimator renders every scene K times per spp; Mitsuba's <code>path</code> at the same
 max_depth is the reference. Unbiasedness: per-pixel Welch tests with each side's own variance
 (Šidák-corrected) and an image-mean test, family-wise α = {res.alpha} spent over the looks of
@@ -109,7 +114,7 @@ relMSE = mean (x−r)²/(r²+{metrics.EPSILON}); efficiency = 1/(relMSE·time).<
 {_estimators(res, colours)}
 {body}
 {failures_section(res, run_dir, colours)}
-<section id="summary"><h2>Summary across scenes</h2>{charts.efficiency_summary(res, colours)}</section>
+{summary}
 </body></html>
 """
     target = layout.report_html(run_dir)
