@@ -258,7 +258,7 @@ def test_small_images_get_larger_reference_passes():
     assert references.pass_spp(64, 128 * 128, 1 << 18) == 64
     assert references.pass_spp(64, 24 * 24, 1 << 18) == 128
     assert references.pass_spp(64, 8 * 8, 1 << 18) == 1024
-    assert references.pass_spp(64, 8 * 8, 1 << 14) == 256          # 32 × 256 = the cap
+    assert references.pass_spp(64, 8 * 8, 1 << 14) == 512          # 32 × 512 = the cap
     assert references.pass_spp(64, 8 * 8, 1 << 10) == 64           # never below the profile's
 
 

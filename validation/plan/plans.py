@@ -24,7 +24,7 @@ class Display:
     res: int
     path_spp: tuple[int, ...] = (4, 8, 16)
     renders: int = 4               # K seeds per estimator and budget
-    repeats: int = 5               # timed renders per estimator and spp (cost model)
+    repeats: int = 5               # pilot renders per estimator at 1 and 16 spp
 
 
 @dataclass(frozen=True, kw_only=True)

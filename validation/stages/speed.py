@@ -6,10 +6,10 @@ resolution of the scene's :class:`~mcillum.validation.plan.profiles.Display`,
 in a sub-context of the scene's (``ctx.display``). Its stages, in order:
 
     display            the scene at the display resolution, same estimators
-    time_costs         warm renders, estimators interleaved: a pilot at 1 and 16
-                       spp; then ``repeats`` rounds at the spp each estimator
-                       needs for ¼ of and the whole smallest budget → per estimator
-                       t = a + b·spp with bootstrap intervals (stats/costs.py)
+    time_costs         warm renders, estimators interleaved: ``repeats`` rounds
+                       at 1 and 16 spp, the fastest of each → per estimator
+                       t = a + b·spp, which places the budgets and predicts
+                       each estimator's spp there
     render_budgets     (stages/budgets.py) budgets T = `path`'s model at
                        ``path_spp`` (scaled by one factor until every a ≤ 10 %
                        of the largest T, where efficiency is read, and every
@@ -26,7 +26,10 @@ in a sub-context of the scene's (``ctx.display``). Its stages, in order:
                        cached by content): about 16× `path`'s spp there. Its
                        share of every relMSE is recorded (``reference_relmse``:
                        6 % of path's, with its standard error)
-    measure_speed      relMSE with its interval per budget, wall times against
+    measure_speed      per estimator t = a + b·spp with bootstrap intervals
+                       (stats/costs.py), fitted to every timed render: the
+                       pilot's and every try at every budget;
+                       relMSE with its interval per budget, wall times against
                        the budget, efficiency against `path` net of the
                        reference's share (stats/costs.py), a ranking with
                        ties, FLIP; an estimator whose relMSE is within 2× of
@@ -66,7 +69,6 @@ from .budgets import LOADED, ON_BUDGET, REFERENCE
 from .budgets import job as _job
 
 PILOT_SPP = (1, 16)
-PILOT_ROUNDS = 3
 MAX_SCALE = 64             # budgets grow at most this much to outweigh the fixed cost
 MIN_SPP = 6                # samples per pixel every estimator gets at the smallest budget
 #: The smallest budget at least (seconds): below about 50 ms the same
@@ -78,7 +80,7 @@ MIN_BUDGET = 0.06
 #: lognormal σ = 1 and Pareto errors covered 80-90 % at K = 4; the quick
 #: profile's estimators stay below 0.11 (docs/measurements.md, 2026-12-02).
 HEAVY_CV = 0.5
-CACHE_VERSION = 2
+CACHE_VERSION = 3
 
 
 # ----------------------------- The display scene --------------------------------
@@ -96,31 +98,22 @@ def display(ctx) -> None:
 
 
 def time_costs(ctx) -> None:
-    """A cost model t = a + b·spp per estimator (see the module doc)."""
+    """A pilot cost model t = a + b·spp per estimator through the fastest of
+    the profile's ``repeats`` renders at 1 and 16 spp (a ≈ t(1) − b): it
+    places the budgets and predicts each estimator's spp there. The model
+    reported is fitted later to every timed render (:func:`measure_speed`).
+    Rounds at spp near the smallest budget used to follow; the budgets'
+    corrections made them redundant (docs/measurements.md, 2026-12-03)."""
     ctx.run.executor.timed_on()                         # (forget earlier stages')
-    if ctx.timings is not None:                         # from the cache
-        ctx.costs = {n: costs.fit_cost(t) for n, t in ctx.timings.items()}
-        return
-    sub, d = ctx.display, ctx.plan.display
-    stream = seeds.stream("speed_timing")
-    # pilot: the fastest of 3 renders at 1 and 16 spp (a ≈ t(1) − b)
-    pilot = {n: costs.fit_cost({s: [min(t)] * 2 for s, t in spps.items()})
-             for n, spps in timing.timed(sub.run.executor, _job(sub),
-                                         dict.fromkeys(sub.integrators, list(PILOT_SPP)),
-                                         PILOT_ROUNDS, stream).items()}
-    path_spp = budget_spp(pilot, d.path_spp)
-    smallest = costs.seconds_at(pilot[REFERENCE], path_spp[0])
-    # time each estimator at the spp it needs for a quarter of and the whole
-    # smallest budget: small spp pin a down, and the line is extrapolated to
-    # the larger budgets (a budget's renders that miss it are noted)
-    plan = {}
-    for n, model in pilot.items():
-        lo = costs.spp_for(model, smallest / 4)
-        plan[n] = [lo, max(costs.spp_for(model, smallest), 2 * lo)]
-    ctx.timings = timing.timed(sub.run.executor, _job(sub), plan, d.repeats, stream,
-                               ctx.timing_load)
-    ctx.costs = {n: costs.fit_cost(t) for n, t in ctx.timings.items()}
-    ctx.budget_path_spp = path_spp
+    if ctx.timings is None:                             # (else from the cache)
+        sub, d = ctx.display, ctx.plan.display
+        ctx.timings = timing.timed(sub.run.executor, _job(sub),
+                                   dict.fromkeys(sub.integrators, list(PILOT_SPP)),
+                                   d.repeats, seeds.stream("speed_timing"), ctx.timing_load)
+    ctx.costs = {n: costs.fit_cost({s: [min(t)] * 2 for s, t in spps.items()})
+                 for n, spps in ctx.timings.items()}
+    if ctx.budget_path_spp is None:
+        ctx.budget_path_spp = budget_spp(ctx.costs, ctx.plan.display.path_spp)
 
 
 def budget_spp(models: dict, path_spp) -> list[int]:
@@ -193,15 +186,26 @@ def measure_speed(ctx) -> None:
                              f"reference's own share {share.value:.3g}: the reference "
                              "limits it, and its efficiency is a lower bound")
     ranking = costs.ranking({n: (e.value, e.ci) for n, e in eff.items()})
+    models = {n: costs.fit_cost(_every_timing(ctx, n)) for n in ctx.costs}
     others, cores, loaded = _load(ctx)
     flips = {n: metrics.flip(u.images[0], r) for n, u in ctx.budget_stacks[-1].items()}
     ctx.flip_maps = {n: f[0] for n, f in flips.items() if f is not None}
     ctx.speed = Speed(
-        res=d.res, renders=d.renders, cost_model=dict(ctx.costs), budgets=budgets,
+        res=d.res, renders=d.renders, cost_model=models, budgets=budgets,
         efficiency_vs_path=ratios, ranking=ranking, reference=common.reference_summary(ref),
         mean_flip={n: (f[1] if f is not None else float("nan")) for n, f in flips.items()},
         notes=list(ctx.notes), timed_on=list(ctx.timed_on), others_cores=others,
         cores=cores, loaded=loaded)
+
+
+def _every_timing(ctx, name: str) -> dict[int, list[float]]:
+    """{spp: [seconds]} of every timed render of ``name``: the pilot's and
+    every try's at every budget."""
+    out = {s: list(t) for s, t in ctx.timings[name].items()}
+    for tries in ctx.budget_tries:
+        for t in tries[name]:
+            out.setdefault(t.spp, []).extend(t.wall_seconds)
+    return out
 
 
 def _kind(name: str, run: BudgetRun, share: costs.Share) -> str:
@@ -293,7 +297,7 @@ def _cache_file(ctx) -> tuple[str, str]:
     sub, d = ctx.display, ctx.plan.display
     key = hashlib.sha256(json.dumps(
         [sub.scene_key, list(sub.integrators), dataclasses.asdict(d), PILOT_SPP,
-         PILOT_ROUNDS, MAX_SCALE, CACHE_VERSION]).encode()).hexdigest()[:24]
+         MAX_SCALE, MIN_SPP, MIN_BUDGET, CACHE_VERSION]).encode()).hexdigest()[:24]
     return layout.kept_renders(ctx.run.out_dir, ctx.id, "speed"), key
 
 
