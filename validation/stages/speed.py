@@ -27,8 +27,8 @@ in a sub-context of the scene's (``ctx.display``). Its stages, in order:
                        share of every relMSE is recorded (``reference_relmse``:
                        6 % of path's, with its standard error)
     measure_speed      per estimator t = a + b·spp with bootstrap intervals
-                       (stats/costs.py), fitted to every timed render: the
-                       pilot's and every try at every budget;
+                       (stats/costs.py) through every pilot render (the
+                       budgets' own times are shown beside it);
                        relMSE with its interval per budget, wall times against
                        the budget, efficiency against `path` net of the
                        reference's share (stats/costs.py), a ranking with
@@ -101,7 +101,8 @@ def time_costs(ctx) -> None:
     """A pilot cost model t = a + b·spp per estimator through the fastest of
     the profile's ``repeats`` renders at 1 and 16 spp (a ≈ t(1) − b): it
     places the budgets and predicts each estimator's spp there. The model
-    reported is fitted later to every timed render (:func:`measure_speed`).
+    reported, with intervals, is the line through every pilot render
+    (:func:`measure_speed`).
     Rounds at spp near the smallest budget used to follow; the budgets'
     corrections made them redundant (docs/measurements.md, 2026-12-03)."""
     ctx.run.executor.timed_on()                         # (forget earlier stages')
@@ -186,7 +187,10 @@ def measure_speed(ctx) -> None:
                              f"reference's own share {share.value:.3g}: the reference "
                              "limits it, and its efficiency is a lower bound")
     ranking = costs.ranking({n: (e.value, e.ci) for n, e in eff.items()})
-    models = {n: costs.fit_cost(_every_timing(ctx, n)) for n in ctx.costs}
+    # the pilot's renders, every repeat: a line through the budgets' renders
+    # too gave fixed costs of -8 to -14 ms [intervals below 0], since a sample
+    # costs less at large spp than at 1-16 (docs/measurements.md, 2026-12-03)
+    models = {n: costs.fit_cost(ctx.timings[n]) for n in ctx.costs}
     others, cores, loaded = _load(ctx)
     flips = {n: metrics.flip(u.images[0], r) for n, u in ctx.budget_stacks[-1].items()}
     ctx.flip_maps = {n: f[0] for n, f in flips.items() if f is not None}
@@ -196,16 +200,6 @@ def measure_speed(ctx) -> None:
         mean_flip={n: (f[1] if f is not None else float("nan")) for n, f in flips.items()},
         notes=list(ctx.notes), timed_on=list(ctx.timed_on), others_cores=others,
         cores=cores, loaded=loaded)
-
-
-def _every_timing(ctx, name: str) -> dict[int, list[float]]:
-    """{spp: [seconds]} of every timed render of ``name``: the pilot's and
-    every try's at every budget."""
-    out = {s: list(t) for s, t in ctx.timings[name].items()}
-    for tries in ctx.budget_tries:
-        for t in tries[name]:
-            out.setdefault(t.spp, []).extend(t.wall_seconds)
-    return out
 
 
 def _kind(name: str, run: BudgetRun, share: costs.Share) -> str:
