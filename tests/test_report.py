@@ -283,7 +283,8 @@ def data_images(html_text):
 
 def test_a_run_without_a_speed_stage_draws_no_summary(tmp_path):
     """--no-speed or failure cases only: no empty "Summary across scenes"
-    chart and no link to it; with the stage, both."""
+    chart and no link to it, and no empty scene list where there are no scenes;
+    with the stage, both."""
     import dataclasses
     res = synthetic_results()
     timed = open(report.build(str(fake_run_dir(tmp_path / "a", res))), encoding="utf-8").read()
@@ -292,6 +293,10 @@ def test_a_run_without_a_speed_stage_draws_no_summary(tmp_path):
                                                for s in res.scenes])
     text = open(report.build(str(fake_run_dir(tmp_path / "b", untimed))), encoding="utf-8").read()
     assert "Summary across scenes" not in text and 'href="#summary"' not in text
+    alone = dataclasses.replace(res, scenes=[])             # failure cases only
+    (tmp_path / "c").mkdir()
+    text = open(report.build(str(fake_run_dir(tmp_path / "c", alone))), encoding="utf-8").read()
+    assert "Scenes:" not in text and 'href="#failures"' in text
 
 
 def test_report_is_self_contained(tmp_path):

@@ -129,7 +129,7 @@ def info(name: str) -> SceneInfo:
     except (ValueError, UnicodeDecodeError):
         summary = ""
     return SceneInfo(os.path.splitext(os.path.basename(full))[0], full,
-                     summary or f"{os.path.basename(full)}, a scene given by path", None,
+                     summary or f"{os.path.basename(full)}, a scene given by path.", None,
                      bundled=False)
 
 

@@ -89,7 +89,9 @@ def _write(run_dir: str, res: Results) -> str:
     toc = " · ".join(f"<a href='#{s.name}'>{s.name}</a>" for s in res.scenes)
     # (a run without a speed stage, e.g. failure cases only, has nothing to sum up)
     timed = any(s.speed is not None for s in res.scenes)
-    summary_link = ' · <a href="#summary">summary</a>' if timed else ""
+    contents = " · ".join(([f"Scenes: {toc}"] if res.scenes else [])
+                          + ['<a href="#failures">where methods fail</a>']
+                          + (['<a href="#summary">summary</a>'] if timed else []))
     summary = (f'<section id="summary"><h2>Summary across scenes</h2>'
                f'{charts.efficiency_summary(res, colours)}</section>') if timed else ""
     by_design = {n for n, f in res.estimator_facts.items() if not f.unbiased}
@@ -104,7 +106,7 @@ variant <code>{html.escape(res.variant)}</code> · mitsuba {html.escape(res.mits
 drjit {html.escape(res.drjit_version)} · profile <b>{html.escape(res.profile)}</b> ·
 {_executor(res.executor)} · {html.escape(results.wall_text(res))} · report written {time.strftime('%Y-%m-%d %H:%M')}</p>
 <p class="verdict {verdict[0]}">{verdict[1]}</p>
-<p>Scenes: {toc} · <a href="#failures">where methods fail</a>{summary_link}</p>
+<p>{contents}</p>
 <p>Each estimator renders every scene K times per spp; Mitsuba's <code>path</code> at the same
 max_depth is the reference. Unbiasedness: per-pixel Welch tests with each side's own variance
 (Šidák-corrected) and an image-mean test, family-wise α = {res.alpha} spent over the looks of
