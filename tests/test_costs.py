@@ -179,6 +179,13 @@ def test_a_missed_budget_is_corrected_toward_it_in_bounded_steps():
     assert budgets.corrected(model, [at(40, 0.2)], budget) == 80           # at most ×2
     assert budgets.corrected(model, [at(40, 8.0)], budget) == 20           # at most ÷2
     assert budgets.corrected(model, [at(1, 1.0)], A / 2) is None          # 1 spp too slow
+    # never the spp that just missed: a slow first try steepened the line,
+    # which rounds back to 4 spp; 5 is tried (bayesian_importance at 256²)
+    coarse = costs.fit_cost({1: [0.01 + 0.105] * 3, 16: [0.01 + 0.105 * 16] * 3})
+    tries = [Try(spp=6, wall_seconds=[0.827] * 4), Try(spp=4, wall_seconds=[0.503] * 4)]
+    assert budgets.corrected(coarse, tries, 0.603) == 5
+    fast = [Try(spp=2, wall_seconds=[0.20] * 4), Try(spp=4, wall_seconds=[0.503] * 4)]
+    assert budgets.corrected(coarse, fast, 0.44) == 3                      # and downward
 
 
 def test_efficiency_interval_covers_under_skewed_errors_and_drifting_timings():

@@ -88,7 +88,9 @@ def corrected(model, tries: list[Try], budget: float) -> int | None:
     line through the model's fixed cost (spp 0, a) fitted to every render
     of every try so far, its step at most ×2 either way: on a loaded
     machine one try's median swung by 30-50 %, and a secant through the
-    last one or two chased that noise (34 spp, then 1)."""
+    last one or two chased that noise (34 spp, then 1). Where the line
+    rounds back to the last try's spp, the next whole sample toward the
+    budget is tried."""
     last = tries[-1]
     median = float(np.median(last.wall_seconds))
     if abs(median - budget) <= ON_BUDGET * budget:
@@ -102,7 +104,12 @@ def corrected(model, tries: list[Try], budget: float) -> int | None:
         return None
     step = min(max((budget - fixed) / slope / last.spp, 0.5), 2.0)
     nxt = max(1, int(round(last.spp * step)))
-    return None if nxt == last.spp == 1 else nxt
+    if nxt == last.spp:
+        # (the line rounds back to the spp that just missed: a slow first
+        # try steepens it; bayesian_importance at 256², 603 ms: 6 spp took
+        # 827 ms, then 4 spp 503 ms twice, where 5 spp was within 10 %)
+        nxt = last.spp + 1 if median < budget else last.spp - 1
+    return None if nxt < 1 else nxt
 
 
 def _carried(model, before: list[Try], before_budget: float, budget: float) -> int:
