@@ -196,9 +196,9 @@ def _speed_section(scene: SceneResult, run_dir: str, colours: dict) -> str:
     capped = f" — capped ({html.escape(ref_info.capped)})" if ref_info.capped else ""
     return f"""
 <h3>Equal time at {sp.res}²: {top.seconds * 1e3:.0f} ms per render</h3>
-<p>Every estimator got the time Mitsuba's <code>path</code> takes for {top.path_spp} spp by its
-cost model;
-its spp come from its own cost model t = a + b·spp. Reference: <code>path</code>,
+<p>Every estimator got the time Mitsuba's <code>path</code> takes for {top.path_spp} spp;
+its spp come from its own cost model t = a + b·spp (a pilot at 1 and 16 spp, in the table
+below), corrected where its measured times missed the budget. Reference: <code>path</code>,
 {ref_info.spp} spp in {ref_info.passes} passes{capped}.{_timed_on(sp)} Tone mapping for every image:
 {_scaling(ev)}, clipped to [0, 1], sRGB. Captions: spp and the measured time of the
 render shown.</p>
