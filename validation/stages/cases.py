@@ -165,7 +165,7 @@ def settled_test(ctx, name: str, x: np.ndarray) -> BatchTest:
     seq = ctx.run.sequential
     settled, c = sequential.settle([(ctx.plan.spp, x)], ctx.reference.moments(),
                                    _reader(ctx, name), sequential.renderer(ctx, name),
-                                   seq.case_epsilon, ctx.run.growth(seq.case_budget),
+                                   seq.case_epsilon, _growth(ctx),
                                    reference_spp=ctx.reference.spp)
     d = settled.decision
     return BatchTest(passed=c.passed, pass_fraction=c.pass_fraction, min_p=c.min_p,
@@ -250,8 +250,8 @@ def widened_reference(ctx) -> None:
     half of it (image mean ±4.5 % at 131 072 samples per pixel)."""
     common.build_reference(ctx)
     ref = ctx.reference
-    budget = ctx.plan.spp * ctx.plan.seeds * ctx.run.growth(ctx.run.sequential.case_budget)
-    needed = budget / sequential.REFERENCE_LEAD
+    needed = sequential.budget(ctx.plan.spp * ctx.plan.seeds, _growth(ctx)) \
+        / sequential.REFERENCE_LEAD
     if ref.spp < needed:
         variance = float(ref.variance_of_mean.mean())     # (as references.ensure reads it)
         ctx.reference = references.ensure(ctx, variance * ref.spp / needed)
@@ -270,6 +270,11 @@ def split_widened(ctx) -> None:
         split = ctx.rows[name].numbers.sun
         split.widened_outcome, split.widened_reason = test.outcome, test.reason
         split.widened_test = test.test
+
+
+def _growth(ctx) -> float:
+    """A case's test budget as a multiple of its first look's samples."""
+    return ctx.run.growth(ctx.run.sequential.case_budget)
 
 
 def _samples_emitters(name: str) -> bool:

@@ -91,6 +91,14 @@ def renderer(ctx, name: str):
 REFERENCE_LEAD = 64
 
 
+def budget(start: int, growth: float, reference_spp: int | None = None) -> int:
+    """A test's budget in samples per pixel: ``growth`` × its first look's
+    ``start``, stopped at :data:`REFERENCE_LEAD` × the reference's
+    ``reference_spp`` (None: not stopped), never below ``start``."""
+    full = int(start * growth)
+    return max(start, min(full, REFERENCE_LEAD * reference_spp)) if reference_spp else full
+
+
 def settle(first: list, reference, read, more, epsilon: float, growth: float,
            alpha: float = statistics.ALPHA, looks: int = 20,
            reference_spp: int | None = None):
@@ -107,9 +115,7 @@ def settle(first: list, reference, read, more, epsilon: float, growth: float,
     (:class:`evidence.Settled`, the last look's comparison)."""
     batches = [(spp, np.asarray(x)[..., :3]) for spp, x in first]
     start = samples(batches)
-    budget = int(start * growth)
-    if reference_spp:
-        budget = max(start, min(budget, REFERENCE_LEAD * reference_spp))
+    limit = budget(start, growth, reference_spp)
     k = min(BATCH_RENDERS, max(x.shape[0] for _, x in batches))
     look, replicated, replication = 0, None, ""
     while True:
@@ -117,7 +123,7 @@ def settle(first: list, reference, read, more, epsilon: float, growth: float,
                                level(alpha, look))
         total = samples(batches)
         d = evidence.settle(read(c, batches, look), c, epsilon, total)
-        if d.outcome == "pass" or (d.outcome == "inconclusive" and 2 * total > budget):
+        if d.outcome == "pass" or (d.outcome == "inconclusive" and 2 * total > limit):
             break
         if look + 1 >= looks:
             break
@@ -132,18 +138,18 @@ def settle(first: list, reference, read, more, epsilon: float, growth: float,
                            + (" (their fireflies carry it: a tail)" if excused else ""))
             if replicated:
                 break
-            if 2 * total > budget:
+            if 2 * total > limit:
                 d.outcome = "inconclusive"
                 d.reason += f"; {replication}, and the budget is spent"
                 break
         batches.append(new)
         look += 1
-    if d.outcome == "inconclusive" and 2 * total > budget and "budget" not in d.reason:
-        d.reason += _spent(d, total, look + 1, start, budget < int(start * growth),
+    if d.outcome == "inconclusive" and 2 * total > limit and "budget" not in d.reason:
+        d.reason += _spent(d, total, look + 1, start, limit < int(start * growth),
                            reference_spp)
     if d.outcome == "fail" and replication:
         d.reason += f"; {replication}"
-    return evidence.Settled(decision=d, looks=look + 1, samples=total, budget=budget,
+    return evidence.Settled(decision=d, looks=look + 1, samples=total, budget=limit,
                             replicated=replicated, replication=replication), c
 
 

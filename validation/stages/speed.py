@@ -132,8 +132,8 @@ def budget_spp(models: dict, path_spp) -> list[int]:
     worst = max(max(m.fixed_s, 0.0) for m in models.values())
     largest = (worst / costs.MAX_OVERHEAD - path.fixed_s) / per_spp / max(path_spp)
     # (path's spp defines the budgets: it renders them as they are)
-    slowest = max(max(m.fixed_s, 0.0) + MIN_SPP * m.per_spp_s
-                  for n, m in models.items() if n != REFERENCE) if len(models) > 1 else 0.0
+    slowest = max((max(m.fixed_s, 0.0) + MIN_SPP * m.per_spp_s
+                   for n, m in models.items() if n != REFERENCE), default=0.0)
     smallest = (max(slowest, MIN_BUDGET) - path.fixed_s) / per_spp / min(path_spp)
     scale = min(max(1.0, largest, smallest), MAX_SCALE)
     first = int(np.ceil(scale * min(path_spp)))
