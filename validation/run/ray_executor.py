@@ -231,7 +231,8 @@ class RayExecutor(Executor):
                 load[w] -= 1
                 renders, node = _get(done[0])
                 for i, result in zip(chunk, renders):
-                    result.meta["node"] = node
+                    for one in result if isinstance(result, list) else [result]:
+                        one.meta["node"] = node
                     out[i] = result
                     if progress:
                         progress(jobs[i])

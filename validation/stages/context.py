@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 from ..plan.plans import Sequential
 from ..results import layout
-from ..run import jobs
+from ..run import jobs, launches
 from ..run.executors import Local
 
 
@@ -138,13 +138,21 @@ class Context:
         :class:`~mcillum.validation.run.jobs.Integrator`)."""
         return jobs.Job(self.scene_spec, integrator, spp, seed, live=self.scene)
 
-    def render(self, batch: list, label: str = "", timed: bool = False) -> list:
+    def render(self, batch: list, label: str = "", timed: bool = False,
+               shared: bool = True) -> list:
         """The renders of ``batch`` (jobs), by the run's executor; each
-        finished one is a step of the progress bar (none if ``label`` is None)."""
+        finished one is a step of the progress bar (none if ``label`` is None).
+        Untimed renders share launches (launches.py) unless ``shared`` is
+        False."""
         def step(job):
-            self.run.step(f"{label} {job.integrator.name} {job.spp} spp")
+            self.run.step(f"{label} {job.integrator.name} {job.spp} spp", len(job.seeds) or 1)
         self.run.rendered += len(batch)
-        return self.run.executor.render(batch, step if label is not None else None, timed)
+        if timed or not shared:
+            return self.run.executor.render(batch, step if label is not None else None, timed)
+        # (untimed renders of one integrator and spp share launches: launches.py)
+        launched, slots = launches.grouped(batch)
+        outs = self.run.executor.render(launched, step if label is not None else None)
+        return launches.ungrouped(outs, slots)
 
     def derive(self, estimators=None, *, label: str = "", streams: dict | None = None,
                plan=None, **defines) -> "Context":
