@@ -173,6 +173,34 @@ def test_too_few_rungs_claim_nothing(llvm):
     assert not c.consistent_with_mc and not c.passed and c.outcome == "inconclusive", c
 
 
+def _rung(spp, per_render):
+    r = float(np.mean(per_render))
+    return results.RunStats(spp=spp, renders=len(per_render), relmse=r,
+                            relmse_per_render=list(per_render), mse=r, mape=0.1, bias=0.0,
+                            bias_se=0.01, variance_per_render=r, nonfinite_fraction=0.0,
+                            median_seconds=0.01, seconds=[0.01] * len(per_render),
+                            samples_per_second=1e6, efficiency=1.0, reference_relmse=0.0)
+
+
+def test_a_slope_is_as_uncertain_as_its_rungs():
+    """Four rungs on a line of slope −0.77 by chance (what residuals alone
+    read as −0.77 [−0.81, −0.73], a fail, for cosine sampling on
+    probe_spheres): when one rung's 16 renders hold a heavy tail's rare
+    render, the interval widens to hold −1; the same line from renders
+    that agree stays narrow and fails."""
+    from mcillum.validation.checks import scene as scene_checks
+    from mcillum.validation.stages import scene
+    spp = (16, 64, 256, 1024)
+    level = [0.36 * (s / 16) ** -0.77 for s in spp]
+    tailed = [_rung(s, [m * 0.6] * 15 + [m * 7.0]) for s, m in zip(spp, level)]
+    tame = [_rung(s, [m * 0.98, m * 1.02] * 8) for s, m in zip(spp, level)]
+    for runs, outcome in ((tailed, "pass"), (tame, "fail")):
+        c = scene.convergence_fit(runs)
+        scene_checks.decide_convergence(c, resolved=True)
+        assert abs(c.slope + 0.77) < 1e-6 and c.outcome == outcome, c
+    assert scene.convergence_fit(tailed).low < -1 + 0.15 < scene.convergence_fit(tame).low
+
+
 def test_biased_estimator_fails_with_exit_1(llvm, tiny_profile, tmp_path, capsys):
     biased = twins.wrong_pdf_class("cosine_hemisphere")
     mi.register_integrator("biased_cosine", lambda props, cls=biased: cls(props))

@@ -276,14 +276,23 @@ def mean_interval(values, alpha: float = ALPHA) -> tuple[float, float]:
     return float(values.mean()), float(half)
 
 
-def loglog_fit(x, y, alpha: float = 0.05):
+def loglog_fit(x, y, alpha: float = 0.05, y_var=None):
     """(slope, intercept, (1 − α) slope interval) of the least-squares line
     through log y against log x; the interval is Student-t with n − 2
-    degrees of freedom (unbounded with fewer than 3 points)."""
+    degrees of freedom (unbounded with fewer than 3 points). With ``y_var``
+    (the sampling variance of each y) it is at least as wide as those
+    variances make the slope's, carried through the least-squares weights
+    (normal quantile): points that lie on a line by chance say little when
+    each of them is uncertain (a heavy tail's rare render at one rung)."""
     lx, ly = np.log(np.asarray(x, float)), np.log(np.asarray(y, float))
     fit = stats.linregress(lx, ly)
     dof = len(lx) - 2
     half = stats.t.ppf(1 - alpha / 2, dof) * fit.stderr if dof > 0 else np.inf
+    if y_var is not None and dof > 0:
+        # slope = Σ c_i log y_i, c_i = (lx_i − mean) / Sxx; var(log y) ≈ var(y) / y²
+        c = (lx - lx.mean()) / np.sum((lx - lx.mean()) ** 2)
+        carried = np.sqrt(np.sum(c ** 2 * np.asarray(y_var, float) / np.asarray(y, float) ** 2))
+        half = max(half, stats.norm.ppf(1 - alpha / 2) * carried)
     return fit.slope, fit.intercept, (fit.slope - half, fit.slope + half)
 
 
