@@ -112,16 +112,19 @@ def test_grouped_puts_one_integrator_and_spp_in_a_launch_and_ungroups_in_order()
     batch = []
     for i in range(4):     # interleaved, as stacks.interleaved orders them
         batch += _jobs(scene, "path", 16, [i]) + _jobs(scene, "cosine_hemisphere", 16, [i])
-    batch += _jobs(scene, "path", 1 << 15, [0, 1])     # 2²¹ lanes each: alone
+    batch += _jobs(scene, "path", 1 << 15, [5, 6, 7])     # 2²¹ lanes each: alone
+    batch += _jobs(scene, "cosine_hemisphere", 1 << 13, [8, 9, 10])    # 2 a launch
     launched, slots = launches.grouped(batch)
-    assert [len(s) for s in slots] == [4, 4, 1, 1]
+    assert [len(s) for s in slots] == [4, 4, 1, 1, 1, 2, 1]
     assert slots[0] == [0, 2, 4, 6] and slots[1] == [1, 3, 5, 7]
     assert launched[0].seeds == (0, 1, 2, 3)
     assert launched[0].seed == launches.launch_seed((0, 1, 2, 3))
-    assert not launched[2].seeds and launched[2].seed == 0
-    back = launches.ungrouped([["p0", "p1", "p2", "p3"], ["c0", "c1", "c2", "c3"], "a", "b"],
-                              slots)
-    assert back == ["p0", "c0", "p1", "c1", "p2", "c2", "p3", "c3", "a", "b"]
+    # a launch of one is that job, with its own seed
+    assert [(j.seed, j.seeds) for j in launched[2:5]] == [(5, ()), (6, ()), (7, ())]
+    assert launched[5].seeds == (8, 9) and (launched[6].seed, launched[6].seeds) == (10, ())
+    back = launches.ungrouped([["p0", "p1", "p2", "p3"], ["c0", "c1", "c2", "c3"], "a", "b",
+                               "c", ["d", "e"], "f"], slots)
+    assert back == ["p0", "c0", "p1", "c1", "p2", "c2", "p3", "c3", "a", "b", "c", "d", "e", "f"]
 
 
 def test_grouped_launches_alone_what_cannot_be_tiled(tmp_path):

@@ -115,7 +115,7 @@ def grouped(jobs: list) -> tuple[list, list[list[int]]]:
         for at in range(0, len(members), k):
             part = members[at:at + k]
             seeds = tuple(jobs[i].seed for i in part)
-            launches.append(job if len(part) == 1 else
+            launches.append(jobs[part[0]] if len(part) == 1 else
                             dataclasses.replace(job, seed=launch_seed(seeds), seeds=seeds))
             slots.append(part)
     return launches, slots
