@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from mcillum import files as mcillum_files
 
 from ..plan import scenes
-from . import launches, renders
+from . import renders
 
 
 #: Scenes a workshop keeps loaded. One: every live scene's shapes, BSDFs and
@@ -77,17 +77,14 @@ def make_taking(name: str, settings: dict) -> Integrator:
 
 @dataclass
 class Job:
-    """One render: ``integrator`` on ``scene`` at ``spp`` with ``seed``; with
-    ``seeds``, one launch at ``seed`` whose tiles are the renders for
-    ``seeds`` (launches.py). ``live`` is the loaded scene of the process that
-    made the job (never sent)."""
+    """One render: ``integrator`` on ``scene`` at ``spp`` with ``seed``.
+    ``live`` is the loaded scene of the process that made the job (never sent)."""
 
     scene: SceneSpec
     integrator: Integrator
     spp: int
     seed: int
     live: object = field(default=None, compare=False, repr=False)
-    seeds: tuple[int, ...] = ()
 
     def __getstate__(self):
         return {**self.__dict__, "live": None}
@@ -112,10 +109,9 @@ class Workshop:
         self.integrators: dict[tuple, object] = {}
         self.copied: list[str] = []         # scene keys rendered from a copy
 
-    def run(self, job: Job, files=None):
+    def run(self, job: Job, files=None) -> renders.Render:
         """Render ``job`` (with its live scene and integrator when it has
-        them): a :class:`~.renders.Render`, or a tiled launch's list of them;
-        ``files()`` gives :func:`scene_files` when the scene is new here."""
+        them); ``files()`` gives :func:`scene_files` when the scene is new here."""
         scene = job.live if job.live is not None else self.scene(job.scene, files)
         integrator = job.integrator.made
         if integrator is None:
@@ -124,8 +120,6 @@ class Workshop:
             if integrator is None:
                 integrator = renders.make_integrator(spec.name, dict(spec.params))
                 self.integrators[(spec.name, spec.params)] = integrator
-        if job.seeds:
-            return launches.render(scene, integrator, job.spp, job.seed, job.seeds)
         return renders.render(scene, integrator, job.spp, job.seed)
 
     def scene(self, spec: SceneSpec, files=None):

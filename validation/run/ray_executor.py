@@ -231,8 +231,7 @@ class RayExecutor(Executor):
                 load[w] -= 1
                 renders, node = _get(done[0])
                 for i, result in zip(chunk, renders):
-                    for one in result if isinstance(result, list) else [result]:
-                        one.meta["node"] = node
+                    result.meta["node"] = node
                     out[i] = result
                     if progress:
                         progress(jobs[i])

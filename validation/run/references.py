@@ -243,10 +243,8 @@ def ensure(ctx, target: float) -> Reference:
             done = ref.passes if ref else 0
             n = _batch(ref, target, ctx.run.executor.parallelism, (max_spp // spp_per_pass) - done,
                        max_seconds - (time.perf_counter() - start))
-            # (each pass a launch of its own: a pass is the same image however
-            # many the executor renders at once; pass_spp sizes it for that)
             outs = ctx.render([ctx.job(integrator, spp_per_pass, stream.seed(done + i))
-                               for i in range(n)], None, shared=False)
+                               for i in range(n)], None)
         out = outs.pop(0)
         x = out.image[..., :3].astype(np.float64)
         rendered += 1

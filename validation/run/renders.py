@@ -271,22 +271,18 @@ def split_aovs(image: np.ndarray, names, spp: int = 1) -> tuple[np.ndarray, dict
     return radiance, aovs
 
 
-def render(scene: mi.Scene, integrator: mi.Integrator, spp: int, seed: int = 0,
-           sensor=None) -> Render:
-    """Render ``scene`` with ``integrator`` at ``spp`` samples/pixel and
-    ``seed``, through ``sensor`` (default: the scene's first)."""
+def render(scene: mi.Scene, integrator: mi.Integrator, spp: int, seed: int = 0) -> Render:
+    """Render ``scene`` with ``integrator`` at ``spp`` samples/pixel and ``seed``."""
     if spp < 1:
         raise ValueError(f"spp must be >= 1, got {spp}")
-    sensor = scene.sensors()[0] if sensor is None else sensor
     # mcillum's estimators split over-long wavefronts themselves; Mitsuba's own
     # integrators fail when spp does not divide into their pass count.
     plan = [spp] if registry.is_estimator(integrator) else passes.plan_passes(
-        passes.film_lanes(sensor.film()), spp)
+        passes.film_lanes(scene.sensors()[0].film()), spp)
     before = load.snapshot()
     start = time.perf_counter()
     image = passes.render_in_passes(
-        plan, seed, lambda s, n: mi.render(scene, integrator=integrator, sensor=sensor,
-                                           spp=n, seed=s))
+        plan, seed, lambda s, n: mi.render(scene, integrator=integrator, spp=n, seed=s))
     dr.sync_thread()
     seconds = time.perf_counter() - start
     others = load.others_seconds(before, load.snapshot())

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 from ..plan.plans import Sequential
 from ..results import layout
-from ..run import jobs, launches
+from ..run import jobs
 from ..run.executors import Local
 
 
@@ -138,21 +138,13 @@ class Context:
         :class:`~mcillum.validation.run.jobs.Integrator`)."""
         return jobs.Job(self.scene_spec, integrator, spp, seed, live=self.scene)
 
-    def render(self, batch: list, label: str = "", timed: bool = False,
-               shared: bool = True) -> list:
+    def render(self, batch: list, label: str = "", timed: bool = False) -> list:
         """The renders of ``batch`` (jobs), by the run's executor; each
-        finished one is a step of the progress bar (none if ``label`` is None).
-        Untimed renders share launches (launches.py) unless ``shared`` is
-        False."""
+        finished one is a step of the progress bar (none if ``label`` is None)."""
         def step(job):
-            self.run.step(f"{label} {job.integrator.name} {job.spp} spp", len(job.seeds) or 1)
+            self.run.step(f"{label} {job.integrator.name} {job.spp} spp")
         self.run.rendered += len(batch)
-        if timed or not shared:
-            return self.run.executor.render(batch, step if label is not None else None, timed)
-        # (untimed renders of one integrator and spp share launches: launches.py)
-        launched, slots = launches.grouped(batch)
-        outs = self.run.executor.render(launched, step if label is not None else None)
-        return launches.ungrouped(outs, slots)
+        return self.run.executor.render(batch, step if label is not None else None, timed)
 
     def derive(self, estimators=None, *, label: str = "", streams: dict | None = None,
                plan=None, **defines) -> "Context":
