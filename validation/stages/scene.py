@@ -13,8 +13,9 @@ an spp ladder, then what they measure against the reference.
   reference's own noise adds, mean var_ref/(r² + ε)); the slope's (1 − α)
   interval is Student-t with n − 2 degrees of freedom, and at least as wide
   as each rung's own uncertainty (the spread of its K renders' relMSE)
-  makes it. Monte Carlo expects −1. An estimator with zero variance at every rung is exact and converges
-  trivially (the cosine estimator in a furnace).
+  makes it. Monte Carlo expects −1. An estimator with zero variance at
+  every rung is exact and converges trivially (the cosine estimator in a
+  furnace).
 
 The verdicts are checks/scene.py's. Accuracy at equal time is the
 speed-and-images stage's (speed.py): at these small sizes a render's time
@@ -132,14 +133,17 @@ def convergence_fit(runs: list[RunStats], alpha: float = 0.05) -> Convergence:
     if all(r.variance_per_render <= 1e-12 for r in runs):
         return Convergence(slope=float("nan"), low=float("nan"), high=float("nan"), exact=True,
                            consistent_with_mc=True, passed=True)
-    ok = [(r.spp, r.relmse - r.reference_relmse,
-           float(np.var(r.relmse_per_render, ddof=1)) / len(r.relmse_per_render))
-          for r in runs if r.relmse - r.reference_relmse > 0]
+    ok = [r for r in runs if r.relmse - r.reference_relmse > 0]
     if len(ok) < 3:
         return Convergence(slope=float("nan"), low=float("-inf"), high=float("inf"),
                            exact=False, consistent_with_mc=False, passed=False)
-    spp, rel, var = zip(*ok)
-    slope, _, (lo, hi) = statistics.loglog_fit(spp, rel, alpha, y_var=var)
+    # (each rung's mean relMSE varies as its renders' spread over K; one
+    # render a rung gives no spread, and the residuals alone speak)
+    var = [float(np.var(r.relmse_per_render, ddof=1)) / len(r.relmse_per_render)
+           for r in ok] if all(len(r.relmse_per_render) > 1 for r in ok) else None
+    slope, _, (lo, hi) = statistics.loglog_fit([r.spp for r in ok],
+                                               [r.relmse - r.reference_relmse for r in ok],
+                                               alpha, y_var=var)
     return Convergence(slope=float(slope), low=float(lo), high=float(hi), exact=False,
                        consistent_with_mc=bool(lo <= convergence.EXPECTED_SLOPE <= hi),
                        passed=bool(hi < 0))

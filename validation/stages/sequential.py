@@ -145,7 +145,7 @@ def settle(first: list, reference, read, more, epsilon: float, growth: float,
         batches.append(new)
         look += 1
     if d.outcome == "inconclusive" and 2 * total > limit and "budget" not in d.reason:
-        d.reason += _spent(d, total, look + 1, start, limit < int(start * growth),
+        d.reason += _spent(d, total, look + 1, start, limit < budget(start, growth),
                            reference_spp)
     if d.outcome == "fail" and replication:
         d.reason += f"; {replication}"
