@@ -5,8 +5,10 @@ T; at the second budget on, that spp is scaled by how far the model was off
 at the budget before. A render set whose median wall time misses T by more
 than ON_BUDGET renders again at the spp the measured times say
 (:func:`corrected`), at most CORRECTIONS times, LOADED_CORRECTIONS where
-other processes loaded the machine meanwhile (run/load.py); the try nearest
-T is measured, and every try is kept (results.Try).
+other processes loaded the machine meanwhile (run/load.py), and no more once
+tries at adjacent spp fell on both sides of T (:func:`unreachable`: no whole
+spp meets it); the try nearest T is measured, and every try is kept
+(results.Try).
 """
 
 from __future__ import annotations
@@ -93,7 +95,7 @@ def corrected(model, tries: list[Try], budget: float) -> int | None:
     budget is tried."""
     last = tries[-1]
     median = float(np.median(last.wall_seconds))
-    if abs(median - budget) <= ON_BUDGET * budget:
+    if abs(median - budget) <= ON_BUDGET * budget or unreachable(tries, budget):
         return None
     fixed = min(max(model.fixed_s, 0.0), 0.5 * min(float(np.median(t.wall_seconds))
                                                   for t in tries))
@@ -110,6 +112,25 @@ def corrected(model, tries: list[Try], budget: float) -> int | None:
         # 827 ms, then 4 spp 503 ms twice, where 5 spp was within 10 %)
         nxt = last.spp + 1 if median < budget else last.spp - 1
     return None if nxt < 1 else nxt
+
+
+def unreachable(tries: list[Try], budget: float) -> tuple[int, int] | None:
+    """(n, n + 1) where every try at n spp took less than ``budget`` by more
+    than ON_BUDGET and every try at n + 1 more by more than it: no whole spp
+    meets the budget, since the estimator's time jumps between the two
+    (guided_path adds a training pass at some spp: at 128² its 12 spp took
+    30-45 % longer than its 11, docs/measurements.md, 2026-12-03). None
+    otherwise. A smooth estimator's one sample is a few % of a budget, so
+    only a load swing could make such a pair for it."""
+    lo, hi = (1 - ON_BUDGET) * budget, (1 + ON_BUDGET) * budget
+    medians: dict[int, list[float]] = {}
+    for t in tries:
+        medians.setdefault(t.spp, []).append(float(np.median(t.wall_seconds)))
+    for n, below in sorted(medians.items()):
+        above = medians.get(n + 1)
+        if above and max(below) < lo and min(above) > hi:
+            return n, n + 1
+    return None
 
 
 def _carried(model, before: list[Try], before_budget: float, budget: float) -> int:

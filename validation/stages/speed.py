@@ -18,7 +18,8 @@ in a sub-context of the scene's (``ctx.display``). Its stages, in order:
                        spp = max(1, round((T − a)/b)), interleaved, each timed;
                        an estimator whose median missed T by more than 10 %
                        renders its K again at the spp its measured times say,
-                       at most twice (three times on a loaded machine); every
+                       at most twice (three times on a loaded machine; not
+                       once adjacent spp fell on both sides of T); every
                        try is kept
     display_reference  `path` until its standard error is at most the profile's
                        ``display_reference_fraction`` (25 %) of `path`'s own RMSE
@@ -240,9 +241,17 @@ def _budget_run(ctx, name: str, stack: Stack, budget: float, r: np.ndarray,
     if not on:
         one = costs.seconds_at(ctx.costs[name], 1)
         again = f" after {len(tries) - 1} corrections" if len(tries) > 1 else ""
+        gap = budgets.unreachable(tries, budget)
         if stack.spp == 1 and one > budget:
             note = (f"1 spp already takes {one * 1e3:.1f} ms (cost model), more than the "
                     f"{budget * 1e3:.1f} ms budget")
+        elif gap:
+            at = {n: float(np.median([np.median(t.wall_seconds) for t in tries if t.spp == n]))
+                  for n in gap}
+            note = (f"no whole spp meets the {budget * 1e3:.1f} ms budget: {gap[0]} spp took "
+                    f"{at[gap[0]] * 1e3:.1f} ms, {gap[1]} spp {at[gap[1]] * 1e3:.1f} ms; its "
+                    "time jumps between them (an estimator that learns adds a training "
+                    "pass at some spp)")
         else:
             note = (f"median {median * 1e3:.1f} ms at {stack.spp} spp against a "
                     f"{budget * 1e3:.1f} ms budget ({100 * (median / budget - 1):+.0f} %)"
