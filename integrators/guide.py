@@ -12,6 +12,7 @@ variant: Mitsuba's types are looked up when called.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import itertools
 from collections import deque
@@ -134,6 +135,7 @@ class Guide:
         self.pmf = np.full((1, res * res), 1.0 / (res * res))
         self.trained = np.zeros(1, bool)
         self.indirect = np.zeros(1)              # share of the light arriving indirectly
+        self._voxel_node = None                  # (voxel_node(); the tree's, once grown)
 
     @property
     def leaves(self) -> int:
@@ -175,7 +177,7 @@ class Guide:
         nb = res * res
         g._grow(np.bincount(voxel, minlength=GRID ** 3), threshold * np.sqrt(len(voxel)))
         nodes = len(g.child)
-        node = g.locate(_voxel_centres(np.arange(GRID ** 3)))[voxel]
+        node = g.voxel_node()[voxel]
         key = node * nb + cell
         hits = np.bincount(key, minlength=nodes * nb).reshape(nodes, nb).astype(float)
         total = np.bincount(key, weights=li, minlength=nodes * nb).reshape(nodes, nb)
@@ -207,10 +209,15 @@ class Guide:
         occupied = np.flatnonzero(counts)
         p, c = _voxel_centres(occupied), counts[occupied]
         axis, split, child = [0], [0.0], [0]
+        leaf_of = np.zeros((GRID,) * 3, np.int64)      # (z, y, x): voxel v's leaf at v
         queue = deque([(0, np.arange(len(occupied)), np.zeros(3), np.full(3, float(GRID)), 0)])
         while queue:
             node, idx, lo, hi, depth = queue.popleft()
             if c[idx].sum() <= threshold or depth >= MAX_TREE_DEPTH or np.max(hi - lo) <= 1:
+                # (splits halve sides of 2^k voxels: a leaf's box is whole voxels)
+                x0, y0, z0 = lo.astype(int)
+                x1, y1, z1 = hi.astype(int)
+                leaf_of[z0:z1, y0:y1, x0:x1] = node
                 continue
             a = int(np.argmax(hi - lo))
             mid = 0.5 * (lo[a] + hi[a])
@@ -224,6 +231,7 @@ class Guide:
                 queue.append((first + k, part, low, high, depth + 1))
         self.axis, self.split = np.array(axis, np.uint32), np.array(split, np.float32)
         self.child = np.array(child, np.uint32)
+        self._voxel_node = leaf_of.reshape(-1)
 
     def parents(self) -> np.ndarray:
         """Parent of every node (-1 for the root)."""
@@ -239,6 +247,12 @@ class Guide:
         if not leaves.any():
             return 1.0
         return float(np.mean(mixture_share(bsdf_fraction, self.indirect[leaves])))
+
+    def voxel_node(self) -> np.ndarray:
+        """Leaf of every voxel of the grid (computed once per tree)."""
+        if self._voxel_node is None:
+            self._voxel_node = self.locate(_centres())
+        return self._voxel_node
 
     def locate(self, p: np.ndarray) -> np.ndarray:
         """Leaf of every point of ``p`` (n, 3; voxel units)."""
@@ -260,7 +274,7 @@ class Guide:
         row[leaves] = np.arange(len(leaves))
         alpha = np.where(self.trained[leaves], mixture_share(bsdf_fraction, self.indirect[leaves]),
                          1.0).astype(np.float32)
-        leaf = row[self.locate(_voxel_centres(np.arange(GRID ** 3)))].astype(np.uint32)
+        leaf = row[self.voxel_node()].astype(np.uint32)
         arrays = {"leaf": leaf, "alpha": alpha, **guide_tables(self.pmf[leaves])}
         if not dr.is_jit_v(mi.Float):
             return arrays
@@ -282,6 +296,14 @@ def mixture_share(bsdf_fraction: float, indirect):
     return 1.0 - (1.0 - bsdf_fraction) * np.asarray(indirect)
 
 
+@functools.cache
+def _centres() -> np.ndarray:
+    """Centres of every voxel of the grid (GRID³, 3), read-only."""
+    c = _voxel_centres(np.arange(GRID ** 3))
+    c.flags.writeable = False
+    return c
+
+
 def _voxel_centres(voxel: np.ndarray) -> np.ndarray:
     """Centres of voxels (n, 3), in voxel units."""
     v = np.asarray(voxel, np.int64)
@@ -299,28 +321,35 @@ def refined_means(hits, total, res: int, refine: float) -> np.ndarray:
     fell in keeps its parent's mean. ``hits`` and ``total`` (nodes, res²)
     are the records' counts and Σ L_i per cell."""
     n = len(hits)
-    h, t = hits.reshape(n, res, res), total.reshape(n, res, res)
-
-    def level(a, k):                         # sums over the k × k quadtree cells
-        s = res // k
-        return a.reshape(n, k, s, k, s).sum(axis=(2, 4))
+    h, t = _pyramid(hits.reshape(n, res, res)), _pyramid(total.reshape(n, res, res))
 
     def children(a):                         # each cell's value on its 2 × 2 children
         return a.repeat(2, axis=1).repeat(2, axis=2)
 
-    root = t.sum(axis=(1, 2)) / np.maximum(h.sum(axis=(1, 2)), 1)
+    root = t[1][:, 0, 0] / np.maximum(h[1][:, 0, 0], 1)
     mean = root[:, None, None]
     refined = np.ones((n, 1, 1), bool)       # cells whose quadtree reaches this level
     k = 1
     while k < res:
         share = mean / (k * k) / np.maximum(root, 1e-30)[:, None, None]
-        split = children(refined & (share > refine) & (level(h, k) >= MIN_SPLIT))
-        hk, tk = level(h, 2 * k), level(t, 2 * k)
+        split = children(refined & (share > refine) & (h[k] >= MIN_SPLIT))
+        hk, tk = h[2 * k], t[2 * k]
         prior = children(mean)
         own = (tk + SHRINK * prior) / (hk + SHRINK)
         mean = np.where(split, own, children(mean))
         refined, k = split, 2 * k
     return mean.reshape(n, res * res)
+
+
+def _pyramid(a: np.ndarray) -> dict[int, np.ndarray]:
+    """Sums of ``a`` (n, res, res) over the k × k quadtree cells, by k (1,
+    2, 4 … res), each level from the one below it."""
+    out = {a.shape[1]: a}
+    k = a.shape[1]
+    while k > 1:
+        k //= 2
+        out[k] = out[2 * k].reshape(len(a), k, 2, k, 2).sum(axis=(2, 4))
+    return out
 
 
 class Records:
