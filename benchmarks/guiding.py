@@ -12,6 +12,11 @@ the learning buys and what it costs can be read separately.
     python benchmarks/guiding.py --cases sunlit_room sunlit_room_hole \\
         --spp 64 256 --renders 6
     python benchmarks/guiding.py --cases cornell_box -p directional_res=8
+    python benchmarks/guiding.py --cases sky_sphere --against combine_passes=False
+
+``--against`` adds a second `guided_path` with those properties changed to
+the same interleaved renders (its rows marked "against"): two settings
+compared in one process.
 
 A script, not part of the installed package: it needs mcillum installed
 (``make test`` or ``pip install -e .``). Timings are wall-clock on a
@@ -51,7 +56,8 @@ def reference(scene, depth, ref_spp: int):
             np.var(passes, axis=0, ddof=1) / len(passes), len(passes))
 
 
-def run_case(case: str, res: int, spp: int, k: int, ref, params: dict) -> str:
+def run_case(case: str, res: int, spp: int, k: int, ref, params: dict,
+             against: dict | None = None) -> list[str]:
     name, defines, max_depth = CASES[case]
     scene = renders.load_scene(scenes.path(name), res=res, **defines)
     depth = {} if max_depth is None else {"max_depth": max_depth}
@@ -59,6 +65,8 @@ def run_case(case: str, res: int, spp: int, k: int, ref, params: dict) -> str:
     share = costs.reference_share(ref_mean, ref_var, passes)
     made = {"path": renders.make_integrator("path", depth),
             "guided_path": renders.make_integrator("guided_path", {**depth, **params})}
+    if against:
+        made["against"] = renders.make_integrator("guided_path", {**depth, **params, **against})
     for integrator in made.values():            # (warm-up: kernels compiled)
         renders.render(scene, integrator, spp, seed=10_000)
     errors = {n: [] for n in made}
@@ -69,13 +77,20 @@ def run_case(case: str, res: int, spp: int, k: int, ref, params: dict) -> str:
             errors[n].append(float(metrics.per_render_relmse([out.image], ref_mean)[0]))
             seconds[n].append(out.seconds)
     eff = {n: costs.efficiency(errors[n], seconds[n], share) for n in made}
-    value, ci = costs.ratio(eff["guided_path"], eff["path"], k)
     net = {n: np.mean(errors[n]) - share.value for n in made}
-    training = made["guided_path"].training
-    learned = f"{training[-1]['leaves']} leaves" if training else "no training"
-    return (f"| {case} | {res}² × {spp} | {net['guided_path'] / net['path']:.2f} | "
-            f"{np.mean(seconds['guided_path']) / np.mean(seconds['path']):.2f} | "
-            f"{value:.2f} [{ci.low:.2f}, {ci.high:.2f}] | {net['path']:.3g} | {learned} |")
+    rows = []
+    for n in made:
+        if n == "path":
+            continue
+        value, ci = costs.ratio(eff[n], eff["path"], k)
+        training = made[n].training
+        learned = f"{training[-1]['leaves']} leaves" if training else "no training"
+        rows.append(f"| {case}{' (against)' if n == 'against' else ''} | {res}² × {spp} | "
+                    f"{net[n] / net['path']:.2f} | "
+                    f"{np.mean(seconds[n]) / np.mean(seconds['path']):.2f} | "
+                    f"{value:.2f} [{ci.low:.2f}, {ci.high:.2f}] | {net['path']:.3g} | "
+                    f"{learned} |")
+    return rows
 
 
 def main(argv=None) -> None:
@@ -88,15 +103,11 @@ def main(argv=None) -> None:
     parser.add_argument("--variant", default="llvm_ad_rgb")
     parser.add_argument("-p", dest="params", action="append", default=[],
                         help="guided_path property, key=value (repeatable)")
+    parser.add_argument("--against", action="append", default=[],
+                        help="a second guided_path with this property changed (repeatable)")
     args = parser.parse_args(argv)
     renders.set_variant(args.variant)
-    params = {}
-    for item in args.params:
-        key, _, text = item.partition("=")
-        try:
-            params[key] = ast.literal_eval(text)
-        except (ValueError, SyntaxError):
-            params[key] = text
+    params, against = _properties(args.params), _properties(args.against)
     print("| case | film × spp | relMSE ÷ path's | time ÷ path's | efficiency ÷ path "
           "[95 %] | path's relMSE | guide |")
     print("|---|---|---|---|---|---|---|")
@@ -107,7 +118,20 @@ def main(argv=None) -> None:
         ref = reference(scene, depth, args.ref_spp)
         del scene
         for spp in args.spp:
-            print(run_case(case, args.res, spp, args.renders, ref, params), flush=True)
+            for row in run_case(case, args.res, spp, args.renders, ref, params, against):
+                print(row, flush=True)
+
+
+def _properties(items: list[str]) -> dict:
+    """key=value strings → properties (values as Python literals, else text)."""
+    out = {}
+    for item in items:
+        key, _, text = item.partition("=")
+        try:
+            out[key] = ast.literal_eval(text)
+        except (ValueError, SyntaxError):
+            out[key] = text
+    return out
 
 
 if __name__ == "__main__":

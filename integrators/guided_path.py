@@ -143,6 +143,10 @@ class GuidedPathIntegrator(IlluminationEstimator):
        - A quadtree cell of a leaf's square is refined while it carries more
          than this share of the leaf's light (in [0, 1); 0: every cell that
          has the records). (Default: 0.01)
+     * - combine_passes
+       - |bool|
+       - Average the training passes' images into the result, each weighted
+         by its spp (|false|: the result is the last pass alone). (Default: |true|)
 
     Next-event estimation and the power heuristic as ``mis``; the path
     continues along a direction drawn, with probability α, from the BSDF,
@@ -170,9 +174,10 @@ class GuidedPathIntegrator(IlluminationEstimator):
     above ``directional_threshold`` of the leaf's light) and stays coarse
     where records are few. Where
     nothing arrives indirectly the first pass learns nothing and training
-    stops. The training passes' images are discarded: the image is the last
-    render, with the remaining samples and the last density, so it is
-    unbiased; its wall time includes the learning. Nested in another
+    stops. Every pass's image is unbiased, whatever density drew it, so the
+    result (``combine_passes``) is their average weighted by spp: the mean
+    of all the render's samples, none of the training samples lost; its
+    wall time includes the learning. Nested in another
     integrator (``moment``, which calls ``sample`` only) nothing is learned
     and it renders as ``mis``.
 
@@ -207,6 +212,7 @@ class GuidedPathIntegrator(IlluminationEstimator):
         self.spatial_threshold = float(props.get("spatial_threshold", 20.0))
         self.directional_res = int(props.get("directional_res", 32))
         self.directional_threshold = float(props.get("directional_threshold", 0.01))
+        self.combine_passes = bool(props.get("combine_passes", True))
         if not 0 < self.bsdf_fraction <= 1:
             raise ValueError(f"bsdf_fraction = {self.bsdf_fraction} is invalid: it must lie "
                              "in (0, 1] (the BSDF's share keeps the mixture unbiased)")
@@ -229,6 +235,7 @@ class GuidedPathIntegrator(IlluminationEstimator):
                              "(the cells are found by bisection), e.g. 8")
         self._guide = None                  # device arrays of the current guide
         self._records = None
+        self._images = []                   # (during a render: its training images)
         #: The last render's learning: per training pass its spp, the records
         #: learned from so far, the tree's leaves, those that learned and
         #: their mean BSDF share α.
@@ -247,6 +254,7 @@ class GuidedPathIntegrator(IlluminationEstimator):
         pixels = int(dr.prod(sensor_.film().crop_size()))
         depth = int(min(self.max_depth, TRAIN_DEPTH))
         records = []                        # (voxel, cell, L_i, L_d) of every pass so far
+        self._images = []                   # (spp, image) of every training render
         try:
             for i, n in enumerate(training_passes(spp, self.train_fraction,
                                                   self.train_passes)):
@@ -261,12 +269,25 @@ class GuidedPathIntegrator(IlluminationEstimator):
                 if not guide.trained_leaves:
                     break           # (nothing arrives indirectly: the rest renders as mis)
                 self._guide = guide.device(self.bsdf_fraction)
-            return super().render(scene, sensor, seed,
-                                  spp - sum(t["spp"] for t in self.training), develop, evaluate)
+            rest = spp - sum(t["spp"] for t in self.training)
+            image = super().render(scene, sensor, seed, rest, develop, evaluate)
+            if not (develop and self.combine_passes and self._images):
+                return image                # (an undeveloped film holds the last pass)
+            # ------------------ Combine the passes ------------------
+            # Σ n_i·image_i / spp: unbiased, as each pass is. Against the last
+            # pass alone (a share f of the spp trained, variances v0 before
+            # learning and v1 after) it is better unless v0 > v1·(2−f)/(1−f),
+            # 2.3× at f = ¼; the learned density cut variance by 1.9× at most
+            # (docs/measurements.md, 2026-12-03).
+            total = image * rest
+            for n, im in self._images:
+                total += im * n
+            return total / spp
         finally:
             # (a wrapper calling sample() alone later renders as mis, not
             # with this scene's guide)
             self._records, self.records_paths, self._guide = None, False, None
+            self._images = []
 
     def _train(self, scene, sensor, seed, spp, pixels, depth):
         """One training pass of ``spp`` (in pieces of at most MAX_RECORDS
@@ -278,7 +299,8 @@ class GuidedPathIntegrator(IlluminationEstimator):
         rows = []
         for k, n in enumerate(p for p in per if p):
             self._records, self.records_paths = Records(pixels * n, depth), True
-            super().render(scene, sensor, pass_seed(seed, 1000 + k), n, True, True)
+            self._images.append(
+                (n, super().render(scene, sensor, pass_seed(seed, 1000 + k), n, True, True)))
             rows.append(self._records.learned())
         self.records_paths = False
         return tuple(np.concatenate(c) for c in zip(*rows))

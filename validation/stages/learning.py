@@ -61,8 +61,13 @@ def measure(ctx) -> None:
     ref = ctx.reference
     for i, name in enumerate(names):
         points = []
+        # (the image's own samples alone: guided_path would otherwise average
+        # its training passes' images in, and the curve would mix the two)
+        alone = {"combine_passes": False} if hasattr(ctx.integrators[name].made,
+                                                     "combine_passes") else {}
         for j in PASSES:
             total, params = training(spp, j)
+            params = {**params, **alone}
             stack = common.stream_renders(ctx, "learning", name, params, total, k,
                                           len(PASSES) * i + j, timed=True)
             mean, ci = costs.relmse_interval(
