@@ -5,9 +5,10 @@ T; at the second budget on, that spp is scaled by how far the model was off
 at the budget before. A render set whose median wall time misses T by more
 than ON_BUDGET renders again at the spp the measured times say
 (:func:`corrected`), at most CORRECTIONS times, LOADED_CORRECTIONS where
-other processes loaded the machine meanwhile (run/load.py), and no more once
-tries at adjacent spp fell on both sides of T (:func:`unreachable`: no whole
-spp meets it); the try nearest T is measured, and every try is kept
+other processes loaded the machine meanwhile (run/load.py), and, for an
+estimator that learns, no more once tries at adjacent spp fell on both sides
+of T (:func:`unreachable`: its time steps where it adds a training pass, and
+no whole spp meets T); the try nearest T is measured, and every try is kept
 (results.Try).
 """
 
@@ -24,8 +25,11 @@ from ..stats import costs
 
 REFERENCE = registry.REFERENCE
 ON_BUDGET = 0.10           # a median wall time within ±10 % of its budget
-CORRECTIONS = 2            # re-renders of an estimator that missed a budget
-LOADED_CORRECTIONS = 3     # ... where other processes loaded the machine meanwhile
+#: Re-renders of an estimator that missed a budget: with 2, 2 of 63 render
+#: sets missed by a few % after a first try 40 % slow on a quiet machine
+#: (docs/measurements.md, 2026-12-03).
+CORRECTIONS = 3
+LOADED_CORRECTIONS = 4     # ... where other processes loaded the machine meanwhile
 #: Other processes using more than this many cores on average during the
 #: timed renders: the machine was loaded, and the report says so.
 LOADED = 0.25
@@ -73,7 +77,8 @@ def render(ctx) -> bool:
                 if _closest(tries[n], budget) == len(tries[n]) - 1:
                     stacks_j[n] = u         # (a correction that did worse is not kept)
             todo = {n: nxt for n in got
-                    if (nxt := corrected(ctx.costs[n], tries[n], budget)) is not None}
+                    if (nxt := corrected(ctx.costs[n], tries[n], budget,
+                                         registry.facts(n).learns)) is not None}
             loaded = any((t[-1].others_cores or 0.0) > LOADED for t in tries.values())
             if not todo or attempt >= (LOADED_CORRECTIONS if loaded else CORRECTIONS):
                 break
@@ -83,10 +88,11 @@ def render(ctx) -> bool:
     return True
 
 
-def corrected(model, tries: list[Try], budget: float) -> int | None:
+def corrected(model, tries: list[Try], budget: float, learns: bool = False) -> int | None:
     """The spp of the next try of an estimator whose last try's median wall
     time missed ``budget`` by more than ON_BUDGET; None where it did not, or
-    where no other spp would do better (1 spp is already too slow). The
+    where no other spp would do better (1 spp is already too slow, or, for
+    an estimator that ``learns``, :func:`unreachable` found its step). The
     line through the model's fixed cost (spp 0, a) fitted to every render
     of every try so far, its step at most ×2 either way: on a loaded
     machine one try's median swung by 30-50 %, and a secant through the
@@ -95,7 +101,7 @@ def corrected(model, tries: list[Try], budget: float) -> int | None:
     budget is tried."""
     last = tries[-1]
     median = float(np.median(last.wall_seconds))
-    if abs(median - budget) <= ON_BUDGET * budget or unreachable(tries, budget):
+    if abs(median - budget) <= ON_BUDGET * budget or (learns and unreachable(tries, budget)):
         return None
     fixed = min(max(model.fixed_s, 0.0), 0.5 * min(float(np.median(t.wall_seconds))
                                                   for t in tries))
@@ -121,7 +127,9 @@ def unreachable(tries: list[Try], budget: float) -> tuple[int, int] | None:
     (guided_path adds a training pass at some spp: at 128² its 12 spp took
     30-45 % longer than its 11, docs/measurements.md, 2026-12-03). None
     otherwise. A smooth estimator's one sample is a few % of a budget, so
-    only a load swing could make such a pair for it."""
+    only a load swing makes such a pair for it (path under load: 8 spp
+    70 ms, 9 spp 95 ms against 78 ms), and only a learner's stops the
+    corrections (:func:`corrected`)."""
     lo, hi = (1 - ON_BUDGET) * budget, (1 + ON_BUDGET) * budget
     medians: dict[int, list[float]] = {}
     for t in tries:

@@ -18,9 +18,9 @@ in a sub-context of the scene's (``ctx.display``). Its stages, in order:
                        spp = max(1, round((T − a)/b)), interleaved, each timed;
                        an estimator whose median missed T by more than 10 %
                        renders its K again at the spp its measured times say,
-                       at most twice (three times on a loaded machine; not
-                       once adjacent spp fell on both sides of T); every
-                       try is kept
+                       at most three times (four on a loaded machine; for
+                       an estimator that learns, not once adjacent spp
+                       fell on both sides of T); every try is kept
     display_reference  `path` until its standard error is at most the profile's
                        ``display_reference_fraction`` (25 %) of `path`'s own RMSE
                        at the largest budget (run/references.py: adaptive,
@@ -248,10 +248,11 @@ def _budget_run(ctx, name: str, stack: Stack, budget: float, r: np.ndarray,
         elif gap:
             at = {n: float(np.median([np.median(t.wall_seconds) for t in tries if t.spp == n]))
                   for n in gap}
-            note = (f"no whole spp meets the {budget * 1e3:.1f} ms budget: {gap[0]} spp took "
-                    f"{at[gap[0]] * 1e3:.1f} ms, {gap[1]} spp {at[gap[1]] * 1e3:.1f} ms; its "
-                    "time jumps between them (an estimator that learns adds a training "
-                    "pass at some spp)")
+            why = ("it adds a training pass between them" if registry.facts(name).learns
+                   else "its times varied more than the spp could follow")
+            note = (f"no whole spp met the {budget * 1e3:.1f} ms budget: {gap[0]} spp took "
+                    f"{at[gap[0]] * 1e3:.1f} ms, {gap[1]} spp {at[gap[1]] * 1e3:.1f} ms{again}; "
+                    f"{why}")
         else:
             note = (f"median {median * 1e3:.1f} ms at {stack.spp} spp against a "
                     f"{budget * 1e3:.1f} ms budget ({100 * (median / budget - 1):+.0f} %)"
