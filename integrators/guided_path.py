@@ -13,8 +13,8 @@ from . import registry
 from .bsdf_sampling import sample_bsdf_direction
 from .emitter_sampling import emitter_direction_pdf, sample_emitter_direction
 from .estimator import IlluminationEstimator, over_pdf
-from .guide import (MAX_RECORDS, PASSES, SLOTS_PER_CELL, TRAIN_DEPTH, Guide, Records, grid_of,
-                    pass_seed, take, training_passes, voxel_of)
+from .guide import (MAX_RECORDS, PASSES, SLOTS_PER_CELL, TRAIN_DEPTH, TRAIN_FRACTION, Guide,
+                    Records, grid_of, pass_seed, take, training_passes, voxel_of)
 
 # ----------------------------- Strategy ---------------------------------
 # The learned part is a piecewise-constant density on the unit square, warped
@@ -122,7 +122,7 @@ class GuidedPathIntegrator(IlluminationEstimator):
      * - train_fraction
        - |float|
        - Share of each render's samples per pixel spent learning, in passes
-         of 1, 2, 4, … spp (in [0, 1)). (Default: 0.25)
+         of 1, 2, 4, … spp (in [0, 1)). (Default: 0.125)
      * - train_passes
        - |int|
        - Training passes at most (each traces the whole kernel once more;
@@ -187,7 +187,7 @@ class GuidedPathIntegrator(IlluminationEstimator):
 
             <integrator type="guided_path">
                 <integer name="max_depth" value="8"/>
-                <float name="train_fraction" value="0.25"/>
+                <float name="train_fraction" value="0.125"/>
             </integrator>
     """
 
@@ -207,7 +207,7 @@ class GuidedPathIntegrator(IlluminationEstimator):
     def __init__(self, props: mi.Properties):
         super().__init__(props)
         self.bsdf_fraction = float(props.get("bsdf_fraction", 0.5))
-        self.train_fraction = float(props.get("train_fraction", 0.25))
+        self.train_fraction = float(props.get("train_fraction", TRAIN_FRACTION))
         self.train_passes = props.get("train_passes", PASSES)
         self.spatial_threshold = float(props.get("spatial_threshold", 20.0))
         self.directional_res = int(props.get("directional_res", 32))
@@ -277,7 +277,7 @@ class GuidedPathIntegrator(IlluminationEstimator):
             # Σ n_i·image_i / spp: unbiased, as each pass is. Against the last
             # pass alone (a share f of the spp trained, variances v0 before
             # learning and v1 after) it is better unless v0 > v1·(2−f)/(1−f),
-            # 2.3× at f = ¼; the learned density cut variance by 1.9× at most
+            # 2.1× at f = ⅛; the learned density cut variance by 1.9× at most
             # (docs/measurements.md, 2026-12-03).
             total = image * rest
             for n, im in self._images:
