@@ -124,8 +124,9 @@ def unreachable(tries: list[Try], budget: float) -> tuple[int, int] | None:
     """(n, n + 1) where every try at n spp took less than ``budget`` by more
     than ON_BUDGET and every try at n + 1 more by more than it: no whole spp
     meets the budget, since the estimator's time jumps between the two
-    (guided_path adds a training pass at some spp: at 128² its 12 spp took
-    30-45 % longer than its 11, docs/measurements.md, 2026-12-03). None
+    (guided_path adds a training pass at some spp: at 128², training on ¼
+    of its samples, its 12 spp took 30-45 % longer than its 11,
+    docs/measurements.md, 2026-12-03). None
     otherwise. A smooth estimator's one sample is a few % of a budget, so
     only a load swing makes such a pair for it (path under load: 8 spp
     70 ms, 9 spp 95 ms against 78 ms), and only a learner's stops the
