@@ -24,7 +24,7 @@ SLOPE_WIDTH = 1.0
 SLOPE_TOLERANCE = 0.15
 
 
-def convergence_outcome(c, resolved: bool) -> tuple[str, str]:
+def convergence_outcome(c, resolved: bool, rungs: int | None = None) -> tuple[str, str]:
     """(outcome, message) of a :class:`results.Convergence`: pass when the
     slope's 95 % interval is at most SLOPE_WIDTH wide, lies below 0, reaches
     within SLOPE_TOLERANCE of the expected −1, and the slope itself lies
@@ -33,7 +33,13 @@ def convergence_outcome(c, resolved: bool) -> tuple[str, str]:
     −1 + SLOPE_TOLERANCE (too slow: a bias, or an error that does not fall)
     and the estimator's tail is resolved (``resolved``:
     Evidence.tail_resolved; an unseen tail flattens a slope); inconclusive
-    otherwise (too wide, an unresolved tail, far from −1, or steeper)."""
+    otherwise (too wide, an unresolved tail, far from −1, or steeper).
+    Too wide on a ladder of at most four ``rungs``, the message says that
+    more would narrow it: the line's t quantile has n − 2 degrees of
+    freedom (12.7 at 3 rungs, 3.2 at 5), and a learner's error, falling
+    faster as it learns more, is not quite a line (a user's guided_path:
+    1.08 wide on 3 rungs whatever the renders per rung, 0.42 on 5;
+    docs/measurements.md, 2026-12-03)."""
     if c.exact:
         return "pass", "exact (zero variance at every spp)"
     text = f"relMSE slope {c.slope:+.2f} [{c.low:+.2f}, {c.high:+.2f}]"
@@ -41,7 +47,12 @@ def convergence_outcome(c, resolved: bool) -> tuple[str, str]:
         return "inconclusive", "fewer than 3 rungs with an error above the reference's"
     band = (EXPECTED_SLOPE - SLOPE_TOLERANCE, EXPECTED_SLOPE + SLOPE_TOLERANCE)
     if c.high - c.low > SLOPE_WIDTH:
-        return "inconclusive", f"{text}: wider than {SLOPE_WIDTH} (the ladder cannot decide)"
+        more = ""
+        if rungs is not None and 3 <= rungs <= 4:
+            more = (f": {rungs} rungs leave the line {rungs - 2} degree"
+                    f"{'s' if rungs > 3 else ''} of freedom, and a longer ladder "
+                    "(`ladder` in the profile) would narrow it")
+        return "inconclusive", f"{text}: wider than {SLOPE_WIDTH} (the ladder cannot decide{more})"
     if c.low > band[1]:
         if not resolved:
             return "inconclusive", (f"{text}: slower than {EXPECTED_SLOPE:+.0f}, but its tail "

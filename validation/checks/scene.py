@@ -20,7 +20,7 @@ def judge(scene_id: str, measured: dict[str, EstimatorResult],
     design or not), then every check of the scene, estimator by estimator."""
     for name, est in measured.items():
         decide_unbiasedness(est.unbiasedness, found[name])
-        decide_convergence(est.convergence, found[name].tail_resolved)
+        decide_convergence(est.convergence, found[name].tail_resolved, len(est.runs))
     return by_estimator([*finite(scene_id, measured), *unbiased(scene_id, measured),
                          *converges(scene_id, measured), *bias_shrinks(scene_id, quadrature),
                          *calibrated(scene_id, quadrature)])
@@ -38,9 +38,10 @@ def decide_unbiasedness(u: Unbiasedness, e: Evidence) -> None:
         u.summary = e.settled.summary or u.summary
 
 
-def decide_convergence(c: Convergence, resolved: bool) -> None:
-    """The verdict of :func:`convergence.convergence_outcome`, written into ``c``."""
-    c.outcome, c.message = convergence.convergence_outcome(c, resolved)
+def decide_convergence(c: Convergence, resolved: bool, rungs: int | None = None) -> None:
+    """The verdict of :func:`convergence.convergence_outcome`, written into
+    ``c`` (``rungs``: the ladder's)."""
+    c.outcome, c.message = convergence.convergence_outcome(c, resolved, rungs)
     c.passed = c.outcome == "pass"
 
 
