@@ -51,7 +51,7 @@ def convergence_outcome(c, resolved: bool, rungs: int | None = None) -> tuple[st
         if rungs is not None and 3 <= rungs <= 4:
             more = (f": {rungs} rungs leave the line {rungs - 2} degree"
                     f"{'s' if rungs > 3 else ''} of freedom, and a longer ladder "
-                    "(`ladder` in the profile) would narrow it")
+                    "(more spp in the profile's ladder) would narrow it")
         return "inconclusive", f"{text}: wider than {SLOPE_WIDTH} (the ladder cannot decide{more})"
     if c.low > band[1]:
         if not resolved:
