@@ -239,11 +239,11 @@ def test_a_slope_too_wide_on_a_short_ladder_asks_for_more_rungs():
     """3 rungs leave the line one degree of freedom (t = 12.7): a user's
     guided_path, whose error falls a little faster as it learns, read
     1.08 wide there and 0.42 on 5 rungs. The message says a longer ladder
-    would narrow it; on 5 rungs, or unknown, it does not."""
+    would narrow it; on 4 or 5 rungs, or unknown, it does not."""
     wide = conv(-1.07, -1.61, -0.53)
     assert "a longer ladder" in convergence.convergence_outcome(wide, True, 3)[1]
-    assert "2 degrees of freedom" in convergence.convergence_outcome(wide, True, 4)[1]
-    assert "a longer ladder" not in convergence.convergence_outcome(wide, True, 5)[1]
+    for rungs in (4, 5):        # (4: a heavy tail's rung variance may widen it instead)
+        assert "a longer ladder" not in convergence.convergence_outcome(wide, True, rungs)[1]
     assert "a longer ladder" not in convergence.convergence_outcome(wide, True)[1]
 
 

@@ -34,12 +34,13 @@ def convergence_outcome(c, resolved: bool, rungs: int | None = None) -> tuple[st
     and the estimator's tail is resolved (``resolved``:
     Evidence.tail_resolved; an unseen tail flattens a slope); inconclusive
     otherwise (too wide, an unresolved tail, far from −1, or steeper).
-    Too wide on a ladder of at most four ``rungs``, the message says that
-    more would narrow it: the line's t quantile has n − 2 degrees of
-    freedom (12.7 at 3 rungs, 3.2 at 5), and a learner's error, falling
-    faster as it learns more, is not quite a line (a user's guided_path:
-    1.08 wide on 3 rungs whatever the renders per rung, 0.42 on 5;
-    docs/measurements.md, 2026-12-03)."""
+    Too wide on a ladder of three ``rungs``, the message says that more
+    would narrow it: the line's t quantile has n − 2 degrees of freedom
+    (12.7 at 3 rungs, 3.2 at 5), and a learner's error, falling faster as
+    it learns more, is not quite a line (a user's guided_path: 1.08 wide on
+    3 rungs whatever the renders per rung, 0.42 on 5; docs/measurements.md,
+    2026-12-03). On four, a heavy tail's rung variance may be what widens
+    it (cosine on probe_spheres), and the message does not guess."""
     if c.exact:
         return "pass", "exact (zero variance at every spp)"
     text = f"relMSE slope {c.slope:+.2f} [{c.low:+.2f}, {c.high:+.2f}]"
@@ -48,9 +49,8 @@ def convergence_outcome(c, resolved: bool, rungs: int | None = None) -> tuple[st
     band = (EXPECTED_SLOPE - SLOPE_TOLERANCE, EXPECTED_SLOPE + SLOPE_TOLERANCE)
     if c.high - c.low > SLOPE_WIDTH:
         more = ""
-        if rungs is not None and 3 <= rungs <= 4:
-            more = (f": {rungs} rungs leave the line {rungs - 2} degree"
-                    f"{'s' if rungs > 3 else ''} of freedom, and a longer ladder "
+        if rungs == 3:
+            more = (": 3 rungs leave the line 1 degree of freedom, and a longer ladder "
                     "(more spp in the profile's ladder) would narrow it")
         return "inconclusive", f"{text}: wider than {SLOPE_WIDTH} (the ladder cannot decide{more})"
     if c.low > band[1]:
