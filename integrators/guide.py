@@ -12,7 +12,6 @@ variant: Mitsuba's types are looked up when called.
 
 from __future__ import annotations
 
-import functools
 import hashlib
 import itertools
 from collections import deque
@@ -141,7 +140,7 @@ class Guide:
         self.pmf = np.full((1, res * res), 1.0 / (res * res))
         self.trained = np.zeros(1, bool)
         self.indirect = np.zeros(1)              # share of the light arriving indirectly
-        self._voxel_node = None                  # (voxel_node(); the tree's, once grown)
+        self.voxel_node = np.zeros(GRID ** 3, np.int64)   # leaf of every voxel: the root
 
     @property
     def leaves(self) -> int:
@@ -183,7 +182,7 @@ class Guide:
         nb = res * res
         g._grow(np.bincount(voxel, minlength=GRID ** 3), threshold * np.sqrt(len(voxel)))
         nodes = len(g.child)
-        node = g.voxel_node()[voxel]
+        node = g.voxel_node[voxel]
         key = node * nb + cell
         hits = np.bincount(key, minlength=nodes * nb).reshape(nodes, nb).astype(float)
         total = np.bincount(key, weights=li, minlength=nodes * nb).reshape(nodes, nb)
@@ -237,7 +236,7 @@ class Guide:
                 queue.append((first + k, part, low, high, depth + 1))
         self.axis, self.split = np.array(axis, np.uint32), np.array(split, np.float32)
         self.child = np.array(child, np.uint32)
-        self._voxel_node = leaf_of.reshape(-1)
+        self.voxel_node = leaf_of.reshape(-1)
 
     def parents(self) -> np.ndarray:
         """Parent of every node (-1 for the root)."""
@@ -253,12 +252,6 @@ class Guide:
         if not leaves.any():
             return 1.0
         return float(np.mean(mixture_share(bsdf_fraction, self.indirect[leaves])))
-
-    def voxel_node(self) -> np.ndarray:
-        """Leaf of every voxel of the grid (computed once per tree)."""
-        if self._voxel_node is None:
-            self._voxel_node = self.locate(_centres())
-        return self._voxel_node
 
     def locate(self, p: np.ndarray) -> np.ndarray:
         """Leaf of every point of ``p`` (n, 3; voxel units)."""
@@ -280,7 +273,7 @@ class Guide:
         row[leaves] = np.arange(len(leaves))
         alpha = np.where(self.trained[leaves], mixture_share(bsdf_fraction, self.indirect[leaves]),
                          1.0).astype(np.float32)
-        leaf = row[self.voxel_node()].astype(np.uint32)
+        leaf = row[self.voxel_node].astype(np.uint32)
         arrays = {"leaf": leaf, "alpha": alpha, **guide_tables(self.pmf[leaves])}
         if not dr.is_jit_v(mi.Float):
             return arrays
@@ -300,14 +293,6 @@ def mixture_share(bsdf_fraction: float, indirect):
     (where light is mostly direct); with this share 1.13×, and on
     sunlit_room unchanged (docs/measurements.md, 2026-12-02)."""
     return 1.0 - (1.0 - bsdf_fraction) * np.asarray(indirect)
-
-
-@functools.cache
-def _centres() -> np.ndarray:
-    """Centres of every voxel of the grid (GRID³, 3), read-only."""
-    c = _voxel_centres(np.arange(GRID ** 3))
-    c.flags.writeable = False
-    return c
 
 
 def _voxel_centres(voxel: np.ndarray) -> np.ndarray:
