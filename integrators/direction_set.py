@@ -107,8 +107,19 @@ class DirectionSetEstimator(IlluminationEstimator):
 
     def finish(self, total, s1, s2, y0, drawn, active):
         """(L_r, AOV list) from Σ a_j Y_j, Σ d_j, Σ d_j² and Y_0, where
-        Y_j = factor_j · L_j and d_j = Y_j − Y_0, and the set's ``drawn``."""
+        Y_j = factor_j · L_j and d_j = Y_j − Y_0, and the set's ``drawn``.
+        With :attr:`second_set_sums`, s1, s2 and y0 are pairs: those of
+        the directions before :meth:`second_set_start` and those from it."""
         return total, []
+
+    #: Keep Σ d_j, Σ d_j² and Y_0 separately for a second set of directions
+    #: (from :meth:`second_set_start` on) and pass :meth:`finish` both.
+    second_set_sums = False
+
+    def second_set_start(self, drawn):
+        """Index of the first direction of the second set (with
+        :attr:`second_set_sums`)."""
+        return mi.UInt32(self.directions)
 
     def finish_aovs(self) -> int:
         """How many AOV values :meth:`finish` returns."""
@@ -162,6 +173,9 @@ class DirectionSetEstimator(IlluminationEstimator):
             # Σ a_j Y_j, and Σ d_j, Σ d_j² of d_j = Y_j − Y_0 (shifted by the
             # first sample: the spread of N equal values is then exactly 0)
             total, s1, s2, y0 = mi.Spectrum(0), mi.Spectrum(0), mi.Spectrum(0), mi.Spectrum(0)
+            # (the same sums of a second set, where the subclass keeps them apart)
+            t1, t2, z0 = mi.Spectrum(0), mi.Spectrum(0), mi.Spectrum(0)
+            second = self.second_set_start(drawn) if self.second_set_sums else None
             j = mi.UInt32(0)
             while dr.hint(shade & (j < self.directions), max_iterations=self.directions,
                           label=f"mcillum direction set ({self.plugin_name})"):
@@ -174,10 +188,21 @@ class DirectionSetEstimator(IlluminationEstimator):
                 if emitter_j != None:
                     Y = factor * emitter_j.eval(si_j, shade)
                 total += a * Y
-                y0 = dr.select(j == 0, Y, y0)
-                s1 += Y - y0
-                s2 += dr.square(Y - y0)
+                if dr.hint(self.second_set_sums, mode='scalar'):
+                    in_first = j < second
+                    y0 = dr.select(j == 0, Y, y0)
+                    z0 = dr.select(j == second, Y, z0)
+                    s1 += dr.select(in_first, Y - y0, 0.0)
+                    s2 += dr.select(in_first, dr.square(Y - y0), 0.0)
+                    t1 += dr.select(in_first, 0.0, Y - z0)
+                    t2 += dr.select(in_first, 0.0, dr.square(Y - z0))
+                else:
+                    y0 = dr.select(j == 0, Y, y0)
+                    s1 += Y - y0
+                    s2 += dr.square(Y - y0)
                 j += 1
+            if dr.hint(self.second_set_sums, mode='scalar'):
+                s1, s2, y0 = (s1, t1), (s2, t2), (y0, z0)
             L_r, found = self.finish(total, s1, s2, y0, drawn, shade)
             L += L_r
             aovs = list(found)

@@ -30,6 +30,12 @@ runs over θ rather than μ (the same integral with μ = cos θ) because the
 integrand's width is ≈ ℓ in θ everywhere, while in μ it shrinks to ℓ² at the
 pole; composite Gauss–Legendre with panels about as wide as the smallest ℓ is
 accurate to ~1e-14 relative for ℓ ≥ 0.02. Ṽ = ∫₀^{π/2} z̃(θ) 2 sin θ cos θ dθ.
+
+Glossy lobes. The same model integrates against a Phong lobe about an axis
+(the mirror direction), p_n(ω) = (n + 1)/(2π) cosⁿ α, with θ now the angle
+to the axis and the weight 2 sin θ cos θ replaced by (n + 1) cosⁿ θ sin θ
+(n = 1 is the cosine case). The rule then spans θ ∈ [0, min(π/2, 8/√(n+1))]:
+beyond it cosⁿ θ < e⁻³² of its peak, and its panels narrow with the lobe.
 """
 
 from __future__ import annotations
@@ -55,15 +61,27 @@ PRIOR_MEANS = ("constant", "zero")
 _PANELS, _ORDER = 32, 12
 
 
-def _theta_rule() -> tuple[np.ndarray, np.ndarray]:
+def _theta_rule(top: float = np.pi / 2) -> tuple[np.ndarray, np.ndarray]:
     x, w = np.polynomial.legendre.leggauss(_ORDER)
-    edges = np.linspace(0.0, np.pi / 2, _PANELS + 1)
+    edges = np.linspace(0.0, top, _PANELS + 1)
     half = np.diff(edges)[:, None] / 2
     nodes = (edges[:-1, None] + half * (x + 1)).ravel()
     return nodes, (half * w).ravel()
 
 
 _THETA, _THETA_W = _theta_rule()
+
+
+@functools.lru_cache(maxsize=64)
+def _lobe_rule(exponent: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(θ nodes, quadrature weights, the lobe's weight (n + 1) cosⁿ θ sin θ at
+    the nodes) for the Phong lobe of ``exponent`` n; n = 1 is the cosine
+    rule, 2 sin θ cos θ over [0, π/2]."""
+    if exponent == 1.0:
+        t, w = _THETA, _THETA_W
+        return t, w, 2.0 * np.sin(t) * np.cos(t)
+    t, w = _theta_rule(min(np.pi / 2, 8.0 / np.sqrt(exponent + 1.0)))
+    return t, w, (exponent + 1.0) * np.cos(t) ** exponent * np.sin(t)
 
 
 def fibonacci_square(n: int, shift: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
@@ -95,24 +113,26 @@ def kernel_matrix(x: np.ndarray, y: np.ndarray, length_scale: float) -> np.ndarr
     return np.exp(-0.5 * d2 / length_scale ** 2)
 
 
-def kernel_mean(mu: np.ndarray, length_scale: float) -> np.ndarray:
-    """z̃(μ_j) = ∫_H k̃(ω, ω_j) cos θ/π dω for nodes with cos θ_j = μ_j."""
+def kernel_mean(mu: np.ndarray, length_scale: float, exponent: float = 1.0) -> np.ndarray:
+    """z̃(μ_j) = ∫ k̃(ω, ω_j) p(ω) dω for nodes with cos θ_j = μ_j, θ measured
+    from the pole of p: cos θ/π on the hemisphere (``exponent`` 1), or the
+    Phong lobe (n + 1)/(2π) cosⁿ θ of that exponent."""
     lam = 1.0 / length_scale ** 2
     mu = np.clip(np.asarray(mu, dtype=np.float64), -1.0, 1.0)
     theta_j = np.arctan2(np.sqrt(1.0 - mu ** 2), mu)[..., None]
-    t = _THETA
+    t, w, lobe = _lobe_rule(float(exponent))
     # cos(θ − θ_j) − 1 = −2 sin²((θ − θ_j)/2), exact near the peak.
     expo = -2.0 * lam * np.sin((t - theta_j) / 2) ** 2
-    f = np.exp(expo) * ive(0, lam * np.sin(t) * np.sin(theta_j)) * np.sin(t) * np.cos(t)
-    return 2.0 * f @ _THETA_W
+    f = np.exp(expo) * ive(0, lam * np.sin(t) * np.sin(theta_j)) * lobe
+    return f @ w
 
 
 @functools.lru_cache(maxsize=256)
-def kernel_mean_mean(length_scale: float) -> float:
-    """Ṽ = ∫∫ k̃(ω, ω′) p(ω) p(ω′) dω dω′ = ∫₀¹ z̃(μ) 2μ dμ (cached per ℓ:
-    384 kernel means, ~0.1 s)."""
-    z = kernel_mean(np.cos(_THETA), length_scale)
-    return float(np.sum(z * 2 * np.sin(_THETA) * np.cos(_THETA) * _THETA_W))
+def kernel_mean_mean(length_scale: float, exponent: float = 1.0) -> float:
+    """Ṽ = ∫∫ k̃(ω, ω′) p(ω) p(ω′) dω dω′, p as in :func:`kernel_mean` (cached
+    per ℓ and exponent: 384 kernel means, ~0.1 s)."""
+    t, w, lobe = _lobe_rule(float(exponent))
+    return float(np.sum(kernel_mean(np.cos(t), length_scale, exponent) * lobe * w))
 
 
 @dataclass(frozen=True)
@@ -163,6 +183,15 @@ def uniform_directions(u: np.ndarray, v: np.ndarray) -> np.ndarray:
 MAPPINGS = {"cosine": cosine_directions, "uniform": uniform_directions}
 
 
+def lobe_directions(u: np.ndarray, v: np.ndarray, exponent: float) -> np.ndarray:
+    """The Phong lobe's map about +z (the lobe's axis), (n, 3): cos α =
+    u^{1/(n+1)}, φ = 2π v, density (n + 1)/(2π) cosⁿ α."""
+    cos_t = np.asarray(u, dtype=np.float64) ** (1.0 / (exponent + 1.0))
+    sin_t = np.sqrt(np.maximum(0.0, 1.0 - cos_t ** 2))
+    phi = 2 * np.pi * np.asarray(v, dtype=np.float64)
+    return np.stack([sin_t * np.cos(phi), sin_t * np.sin(phi), cos_t], axis=-1)
+
+
 #: Chebyshev points in θ of the kernel-mean interpolant (for ℓ ≥ INTERPOLATED:
 #: 1e-12 relative against kernel_mean there).
 _CHEBYSHEV = 257
@@ -179,15 +208,21 @@ def _kernel_mean_interpolant(length_scale: float):
                                                                         length_scale))
 
 
-@functools.lru_cache(maxsize=1024)
-def _node_terms(n: int, length_scale: float, mapping: str, shift: float):
+@functools.lru_cache(maxsize=4096)
+def _node_terms(n: int, length_scale: float, mapping: str, shift: float,
+                exponent: float = 1.0):
     """(K̃, its eigenvalues and eigenvectors, z̃) of the nodes: what the
     weights of every noise share (one eigendecomposition solves K̃ + t·I
     for every t)."""
-    dirs = MAPPINGS[mapping](*fibonacci_square(n, shift))
+    if mapping == "lobe":
+        dirs = lobe_directions(*fibonacci_square(n, shift), exponent)
+    else:
+        dirs = MAPPINGS[mapping](*fibonacci_square(n, shift))
     K = kernel_matrix(dirs, dirs, length_scale)
     mu = np.clip(dirs[:, 2], -1.0, 1.0)
-    if length_scale >= INTERPOLATED:
+    if mapping == "lobe":
+        z = kernel_mean(mu, length_scale, exponent)
+    elif length_scale >= INTERPOLATED:
         z = _kernel_mean_interpolant(length_scale)(np.arctan2(np.sqrt(1.0 - mu ** 2), mu))
     else:
         z = kernel_mean(mu, length_scale)
@@ -198,9 +233,11 @@ def _node_terms(n: int, length_scale: float, mapping: str, shift: float):
 @functools.lru_cache(maxsize=4096)
 def weights(n: int, length_scale: float, noise: float,
             prior_mean: str = "constant", mapping: str = "cosine",
-            shift: float = 0.0) -> Weights:
+            shift: float = 0.0, exponent: float = 1.0) -> Weights:
     """BMC weights for the nodes ``MAPPINGS[mapping](*fibonacci_square(n, shift))``
-    (the integral is always against p = cos θ/π).
+    (the integral is against p = cos θ/π), or, for ``mapping`` "lobe", the
+    nodes ``lobe_directions(*fibonacci_square(n, shift), exponent)`` and the
+    integral against the lobe (n + 1)/(2π) cosⁿ α.
 
     If cond₂(K̃ + noise·I) > MAX_CONDITION the noise of the solve is raised
     tenfold (from max(noise, 1e-12)) until it is not, with a warning; the
@@ -209,10 +246,14 @@ def weights(n: int, length_scale: float, noise: float,
     """
     _check(n, length_scale, noise, prior_mean)
     n, length_scale, noise = int(n), float(length_scale), float(noise)
-    if mapping not in MAPPINGS:
+    if mapping not in MAPPINGS and mapping != "lobe":
         raise ValueError(f"bayesian_hemisphere: mapping must be one of {', '.join(MAPPINGS)}, "
                          f"got {mapping!r}")
-    K, (eig, vectors), z = _node_terms(n, length_scale, mapping, shift)
+    if not (np.isfinite(exponent) and exponent > 0):
+        raise ValueError(f"bayesian_hemisphere: the lobe's exponent must be a finite number "
+                         f"> 0, got {exponent!r}")
+    exponent = float(exponent) if mapping == "lobe" else 1.0
+    K, (eig, vectors), z = _node_terms(n, length_scale, mapping, shift, exponent)
 
     def cond(t: float) -> float:
         return float((eig[-1] + t) / (eig[0] + t)) if eig[0] + t > 0 else np.inf
@@ -237,7 +278,7 @@ def weights(n: int, length_scale: float, noise: float,
     w = vectors @ ((vectors.T @ z) / (eig + total))
     a = w + (1.0 - w.sum()) / n if prior_mean == "constant" else w
     Q = K + noise * np.eye(n)
-    c = float(a @ Q @ a - 2 * a @ z + kernel_mean_mean(length_scale))
+    c = float(a @ Q @ a - 2 * a @ z + kernel_mean_mean(length_scale, exponent))
     if c < -1e-9:
         raise ValueError(f"bayesian_hemisphere: negative error factor {c:.3g} for "
                          f"N = {n}, ℓ = {length_scale:g}: raise `noise`")

@@ -12,9 +12,9 @@ and an image rendered anyway would be silently wrong (biased dark):
   the pdf covers only the hemisphere on the side of the incident ray.
 
 Participating media are refused as well: these integrators do not trace them.
-A fourth kind, glossy lobes, every estimator reaches but ``bayesian_hemisphere``,
-whose quadrature weights assume a diffuse BSDF (f_r constant over the
-hemisphere).
+A fourth kind, glossy lobes, every shipped estimator reaches; an estimator
+whose weights assume a diffuse BSDF (f_r constant over the hemisphere)
+declares ``diffuse_only`` and refuses them.
 
 :func:`unreachable` lists the problems; :func:`check_reachable` raises
 :class:`UnreachableContentError` naming the first few with a remedy. Nothing
@@ -113,9 +113,9 @@ def _flag_problems(bsdf, owner: str) -> list[Problem]:
     if mi.has_flag(flags, mi.BSDFFlags.Glossy):
         out.append(Problem(
             "glossy_bsdf", f"{owner} has a glossy lobe",
-            "quadrature weights that assume a diffuse BSDF (bayesian_hemisphere) "
-            "would be wrong for it; use fibonacci_hemisphere (it splits its "
-            "directions between the lobes), cosine_hemisphere or mis"))
+            "weights that assume a diffuse BSDF (an estimator declared diffuse_only) "
+            "would be wrong for it; use fibonacci_hemisphere or bayesian_hemisphere "
+            "(they split their directions between the lobes), cosine_hemisphere or mis"))
     return out
 
 

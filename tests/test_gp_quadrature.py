@@ -266,3 +266,76 @@ def test_pixel_error_counts_a_fixed_sets_bias_at_every_spp():
         assert gs.held_out_relmse(biased, truth, a, spp) == pytest.approx(0.01)
     assert gs.held_out_relmse(cancelling, truth, a, 1) == pytest.approx(0.01)
     assert gs.held_out_relmse(cancelling, truth, a, 256) == pytest.approx(0.01 / 256)
+
+
+# --------------------------- The Phong lobe's measure ---------------------------
+
+def brute_lobe_kernel_mean(mu: np.ndarray, length_scale: float, exponent: float) -> np.ndarray:
+    """z̃(μ_j) against (n + 1)/(2π) cosⁿ θ by a 2-D Gauss–Legendre × uniform-φ
+    rule over θ ∈ [0, min(π/2, 10/√(n+1))] (no Bessel form), nodes at φ_j = 0.7."""
+    top = min(np.pi / 2, 10 / np.sqrt(exponent + 1))
+    x, w = np.polynomial.legendre.leggauss(400)
+    theta, w_theta = (x + 1) * top / 2, w * top / 2
+    phi = (np.arange(512) + 0.5) * 2 * np.pi / 512
+    t, p = np.meshgrid(theta, phi, indexing="ij")
+    grid = np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], -1).reshape(-1, 3)
+    wts = (w_theta[:, None] * np.sin(t) * (exponent + 1) / (2 * np.pi) * np.cos(t) ** exponent
+           * (2 * np.pi / 512)).ravel()
+    mu = np.asarray(mu, dtype=np.float64)
+    s = np.sqrt(1 - mu ** 2)
+    at = np.stack([s * np.cos(0.7), s * np.sin(0.7), mu], -1)
+    return np.exp((at @ grid.T - 1) / length_scale ** 2) @ wts
+
+
+@pytest.mark.parametrize("exponent, length_scale", [(10.0, 0.3), (100.0, 0.1), (1024.0, 0.03)])
+def test_lobe_kernel_mean_matches_brute_force(exponent, length_scale):
+    """The glossy set's kernel mean: the Bessel form over the lobe's own
+    θ rule against a 2-D rule (measured agreement < 1e-13)."""
+    mu = np.cos(np.array([0.0, 0.3, 1.5]) / np.sqrt(exponent + 1))
+    np.testing.assert_allclose(gq.kernel_mean(mu, length_scale, exponent),
+                               brute_lobe_kernel_mean(mu, length_scale, exponent), rtol=1e-9)
+
+
+def test_lobe_exponent_one_is_the_cosine_measure():
+    """n = 1 is cos θ/π: the same kernel mean and weights as the cosine case."""
+    mu = np.array([0.1, 0.6, 0.99])
+    np.testing.assert_array_equal(gq.kernel_mean(mu, 0.4, 1.0), gq.kernel_mean(mu, 0.4))
+    assert gq.kernel_mean_mean(0.4, 1.0) == gq.kernel_mean_mean(0.4)
+
+
+def test_lobe_nodes_follow_the_lobe():
+    """cos α = u^{1/(n+1)}: the nodes' mean of cos α is (n + 1)/(n + 2), the
+    lobe's (midpoint rule in u: u^{1/31} is steep at 0)."""
+    d = gq.lobe_directions(*gq.fibonacci_square(4096), 30.0)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1, rtol=1e-14)
+    assert d[:, 2].mean() == pytest.approx(31 / 32, rel=1e-4)
+
+
+@pytest.mark.parametrize("sharpness", [4.0, 32.0])
+@pytest.mark.parametrize("n", [8, 32])
+def test_lobe_weights_beat_equal_weights_on_smooth_light(sharpness, n):
+    """Spherical-Gaussian light of sharpness 4 and 32 whose axis lies within
+    0.4 rad of a cos³⁰ lobe's, integrated against the lobe by the glossy
+    set's weights (ℓ = 1 lobe width, σ_n²/σ² = 1e-3, 16 shifted sets × 8
+    turns): squared error below 0.75× that of equal weights on the same
+    nodes. Measured: 0.57 and 0.37 (sharpness 4, N = 8 and 32), 0.48 and
+    0.22 (sharpness 32)."""
+    exponent, ell = 30.0, np.sqrt(2 / 31)
+    rng = np.random.default_rng(0)
+    bmc, equal = [], []
+    for _ in range(12):
+        a, phi = 0.4 * np.sqrt(rng.uniform()), rng.uniform(0, 2 * np.pi)
+        axis = np.array([np.sin(a) * np.cos(phi), np.sin(a) * np.sin(phi), np.cos(a)])
+        u, v = gq.fibonacci_square(1 << 16, 0.0)
+        truth = np.mean(np.exp(sharpness * (gq.lobe_directions(
+            np.mod(u + 0.37, 1), np.mod(v + 0.11, 1), exponent) @ axis - 1)))
+        for s in range(16):
+            shift = gq.set_shift(s, 16, n)
+            w = gq.weights(n, ell, 1e-3, "constant", "lobe", shift, exponent).weights
+            u, v = gq.fibonacci_square(n, shift)
+            for turn in np.arange(8) / 8:
+                y = np.exp(sharpness * (gq.lobe_directions(u, np.mod(v + turn, 1), exponent)
+                                        @ axis - 1))
+                bmc.append((w @ y / truth - 1) ** 2)
+                equal.append((y.mean() / truth - 1) ** 2)
+    assert np.mean(bmc) < 0.75 * np.mean(equal), (np.mean(bmc), np.mean(equal))
