@@ -15,7 +15,7 @@ from .estimator import over_pdf
 from .fibonacci_hemisphere import MAPPINGS, fibonacci_point
 from .phong import phong_lobe_pdf, sample_phong_lobe
 from .gp_scene import (DEFAULT_LENGTH_SCALE, DEFAULT_MAPPING, DEFAULT_NOISE, DEFAULT_SETS,
-                       choose_hyperparameters, likelihood_length_scale)
+                       choose_hyperparameters, choose_lobe_settings, likelihood_length_scale)
 
 PRIOR_MEANS = ("constant", "zero")
 
@@ -36,12 +36,8 @@ PRIOR_MEANS = ("constant", "zero")
 # split the integral, not the samples: the lobe set integrates f_glossy cos L
 # where r·ω > 0 against p_n, the diffuse set everything else against cos θ/π.
 
-#: Lobe exponents the glossy set is tabulated for, four per octave: a
-#: shading point takes the nearest to its lobe's n (in log n). The GP then
-#: models L_i·cos^{n − n_q}·cos θ, which an exponent an octave off makes vary
-#: as much as the lobe itself: the weights erred by 2-4 % on that factor.
-STEPS_PER_OCTAVE = 4
-EXPONENTS = tuple(2.0 ** (k / STEPS_PER_OCTAVE) for k in range(10 * STEPS_PER_OCTAVE + 1))
+#: (The lobe exponents tabulated: gp_settings.EXPONENTS.)
+STEPS_PER_OCTAVE, EXPONENTS = gp_settings.STEPS_PER_OCTAVE, gp_settings.EXPONENTS
 
 
 def lobes(ctx: mi.BSDFContext, flags) -> mi.BSDFContext:
@@ -62,19 +58,12 @@ def lobe_index(exponent):
     return mi.UInt32(dr.clip(k, 0.0, len(EXPONENTS) - 1.0))
 
 
-#: The lobe set's ℓ relative to the lobe's width √(2/(n + 1)), and its
-#: σ_n²/σ²: fixed, not chosen (the held-out integrals are the diffuse
-#: set's). On SG lighting of sharpness 4 and 32 inside a cos³⁰ lobe (a
-#: numpy study, 8 and 32 nodes) they gave 0.22-0.57× the squared error of
-#: equal weights; ℓ 2 was better on the smooth light (0.03-0.07×) and no
-#: better on the sharp one (0.73-1.01×).
+#: The lobe set's ℓ in lobe widths √(2/(n + 1)) and its σ_n²/σ² where
+#: nothing is there to choose them by (no map, a constant one, no glossy
+#: surface in view). On SG lighting of sharpness 4 and 32 inside a cos³⁰
+#: lobe (a numpy study, 8 and 32 nodes) they gave 0.22-0.57× the squared
+#: error of equal weights.
 LOBE_LENGTH_SCALE, LOBE_NOISE = 1.0, 1e-3
-
-
-def lobe_length_scale(exponent: float) -> float:
-    """ℓ of the lobe set of ``exponent`` n: LOBE_LENGTH_SCALE·√(2/(n + 1)),
-    so that the kernel spans as many of the lobe's nodes whatever its width."""
-    return LOBE_LENGTH_SCALE * (2.0 / (exponent + 1.0)) ** 0.5
 
 
 # ------------------------------ Plugin ----------------------------------
@@ -187,11 +176,14 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
     of 41 tabulated exponents (four per octave, 1 to 1024). The sets split
     the integral, not the samples: the lobe set integrates f_glossy cos θ L_i
     where r·ω > 0 against p_n, the other N − N_b directions everything else
-    against cos θ/π, each with its own BMC weights (the lobe set's ℓ is one
-    lobe width, √(2/(n + 1)), and σ_n²/σ² = 1e-3; the diffuse set's are
-    chosen as above for N − N_b nodes), and the two posterior variances
-    add. The GP then models L_i·f cos/p_n on the lobe, smooth where the
-    lobe is a Phong lobe of the tabulated exponent.
+    against cos θ/π, each with its own BMC weights and posterior variance
+    (they add). The diffuse set's settings are chosen as above for N − N_b
+    nodes; the lobe set's ℓ (in lobe widths √(2/(n + 1)), 0.5 to 2.83) and
+    σ_n²/σ² by the same rule on held-out lobes: the map integrated against
+    the lobe about the mirror directions of the glossy surfaces the camera
+    sees, at the median of their exponents (without a map to score on: one
+    lobe width and 1e-3). The GP then models L_i·f cos/p_n on the lobe,
+    smooth where the lobe is a Phong lobe of the tabulated exponent.
 
     .. tabs::
 
@@ -287,8 +279,17 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
 
         self.choice, how, chosen = settings(self.directions)
         self.source = how if self.chooses else "given"
-        # (the diffuse set of a glossy point has N − N_b nodes: its own choice)
-        self.split = settings(self.directions - self.lobe_directions)[2] if glossy else None
+        # (the diffuse set of a glossy point has N − N_b nodes: its own choice;
+        # the lobe set's ℓ, in lobe widths, and noise are chosen on held-out lobes)
+        self.split, self.lobe_choice = None, None
+        if glossy:
+            diffuse = settings(self.directions - self.lobe_directions)[2]
+            self.lobe_choice, scored_at = choose_lobe_settings(
+                scene, self.lobe_directions, self.prior_mean, self.sets, spp)
+            c = self.lobe_choice
+            lobe = (LOBE_LENGTH_SCALE, LOBE_NOISE, diffuse[3]) if c is None else (
+                c.length_scale / gp_settings.lobe_width(scored_at), c.noise, c.calibration)
+            self.split = diffuse + lobe
         self._use(*chosen, split=self.split)
 
     def chosen_settings(self, scene, spp: int) -> dict:
@@ -327,17 +328,16 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
             self._a, self._c, self._d = self._flat(self.tables, self.calibration)
             if self.glossy:
                 # the diffuse set of a glossy point, and the lobe set per exponent
-                ell, noise, mapping, kappa = self._split_used
+                ell, noise, mapping, kappa, lobe_ell, lobe_noise, lobe_kappa = self._split_used
                 self.split_tables = gp_settings.set_weights(n - n_b, ell, noise,
                                                             self.prior_mean, mapping, self.sets)
+                # (ℓ in lobe widths: the same relative kernel at every exponent)
                 self.lobe_tables = [
-                    gp_quadrature.weights(n_b, lobe_length_scale(e), LOBE_NOISE,
-                                          self.prior_mean, "lobe",
-                                          gp_quadrature.set_shift(s, self.sets, n_b), e)
-                    for e in EXPONENTS for s in range(self.sets)]
-                # (κ of the diffuse set's choice for the lobe's too: nothing to fit it on)
+                    t for e in EXPONENTS for t in gp_settings.set_weights(
+                        n_b, lobe_ell * gp_settings.lobe_width(e), lobe_noise,
+                        self.prior_mean, "lobe", self.sets, e)]
                 self._a2, self._c2, self._d2 = self._flat(self.split_tables, kappa)
-                self._b, self._cb, self._db = self._flat(self.lobe_tables, kappa)
+                self._b, self._cb, self._db = self._flat(self.lobe_tables, lobe_kappa)
 
     def _flat(self, tables, calibration: float):
         """(weights, error factors × ``calibration``, amplitude divisors) of

@@ -223,3 +223,106 @@ def choose_hyperparameters(scene, n: int, length_scale, noise, mapping,
             prior_mean=prior_mean, sets=sets, spp=spp)
     return _chosen[key], (f"least error at {spp} spp on the environment map's integrals "
                           f"about {len(normals)} normals the camera sees")
+
+
+# ------------------------ The glossy set's settings -----------------------
+# The same rule for the lobe set of a glossy surface: held-out axes are the
+# mirror directions of the camera rays that hit glossy surfaces at the film
+# positions of held_out_normals, the known answers the map integrated against
+# the lobe about each (by LOBE_TRUTH_SAMPLES of the lobe's own lattice: the
+# lobe is what is narrow), scored at the median of their lobes' exponents.
+
+LOBE_TRUTH_SAMPLES = 1 << 12
+
+
+def held_out_lobes(scene, m: int = HELD_OUT_NORMALS) -> tuple[np.ndarray, np.ndarray]:
+    """(axes (M, 3), exponents (M,)) at the glossy surfaces the first sensor
+    sees through a 4√m × 4√m film grid, M ≤ m evenly spaced in the grid's
+    order: the mirror direction of the camera ray about the shading normal,
+    and the exponent of the Phong lobe of the same density there,
+    2π·p_glossy(r) − 1. Empty arrays where no glossy surface is seen."""
+    side = 4 * int(round(m ** 0.5))
+    g = (np.arange(side) + 0.5) / side
+    x, y = [a.ravel() for a in np.meshgrid(g, g)]
+    sensor = scene.sensors()[0]
+    ctx = mi.BSDFContext()
+    ctx.type_mask = +mi.BSDFFlags.Glossy
+
+    def lobe_at(px, py):
+        ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(px, py), mi.Point2f(0.5, 0.5))
+        si = scene.ray_intersect(ray)
+        if not dr.is_jit_v(mi.Float) and not si.is_valid():
+            return None, None, False                   # (scalar: no BSDF to ask)
+        bsdf = si.bsdf(ray)
+        r = mi.reflect(si.wi)
+        peak = bsdf.pdf(ctx, si, r, si.is_valid())
+        ok = si.is_valid() & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Glossy) & (peak > 0)
+        return si.to_world(r), dr.two_pi * peak - 1.0, ok
+
+    if dr.is_jit_v(mi.Float):
+        r, n, ok = lobe_at(x, y)
+        count = len(x)
+        r = np.broadcast_to(np.array(r, dtype=float).T, (count, 3))
+        n = np.broadcast_to(np.array(n, dtype=float), (count,))
+        ok = np.broadcast_to(np.array(ok, dtype=bool), (count,))
+        found = [(a, b) for a, b, h in zip(r, n, ok) if h]
+    else:
+        found = []
+        for px, py in zip(x, y):
+            r, n, ok = lobe_at(px, py)
+            if ok:
+                found.append((np.array(r, dtype=float).ravel(), float(n)))
+    if len(found) > m:
+        found = [found[i] for i in np.linspace(0, len(found) - 1, m).round().astype(int)]
+    axes = np.array([a for a, _ in found], dtype=float).reshape(-1, 3)
+    return axes / np.linalg.norm(axes, axis=1, keepdims=True), \
+        np.array([b for _, b in found], dtype=float)
+
+
+def held_out_lobe_truth(env, axes: np.ndarray, exponent: float,
+                        samples: int = LOBE_TRUTH_SAMPLES) -> np.ndarray:
+    """∫ L(ω) (n + 1)/(2π) cosⁿ α dω about each axis (channel mean), by a
+    shifted Fibonacci lattice of ``samples`` points mapped by the lobe."""
+    u, v = gp_quadrature.fibonacci_square(samples, 0.0)
+    local = gp_quadrature.lobe_directions(u, np.mod(v + 0.5 / samples, 1.0), exponent)
+    s, t = gp_settings.tangent_frames(axes)
+    world = (local[None, :, :1] * s[:, None] + local[None, :, 1:2] * t[:, None]
+             + local[None, :, 2:] * axes[:, None])
+    return environment_values(env, world.reshape(-1, 3)).reshape(len(axes), samples).mean(axis=1)
+
+
+#: (view fingerprint, N_b, exponent, prior mean, sets, spp) → (Choice, exponent)
+_lobe_chosen: dict = {}
+
+
+def choose_lobe_settings(scene, n: int, prior_mean: str = "constant",
+                         sets: int = DEFAULT_SETS, spp: int = 1):
+    """The lobe set's (ℓ, σ_n²/σ²) for ``n`` nodes, chosen by gp_settings.choose
+    on the held-out lobes at the median of their exponents (rounded to
+    gp_settings.EXPONENTS), over LOBE_LENGTH_SCALES lobe widths and NOISES.
+    Returns (Choice or None, the exponent scored at): None where the scene
+    has no varying map or the camera sees no glossy surface."""
+    samples, _ = informative_samples(scene)
+    if samples is None:
+        return None, None
+    axes, exponents = held_out_lobes(scene)
+    if len(axes) == 0:
+        return None, None
+    exponent = gp_settings.nearest_exponent(float(np.median(exponents)))
+    view = hashlib.sha1(np.ascontiguousarray(samples[1], np.float64).tobytes()
+                        + np.round(axes, 6).tobytes()).hexdigest()
+    key = (view, n, exponent, prior_mean, sets, spp)
+    if key not in _lobe_chosen:
+        env = scene.environment()
+        # (scalar variants evaluate the map in a Python loop: fewer points)
+        truth = held_out_lobe_truth(env, axes, exponent, LOBE_TRUTH_SAMPLES
+                                    if dr.is_jit_v(mi.Float) else 1 << 9)
+        turns = max(4, -(-HELD_OUT_SAMPLES // sets))
+        world = gp_settings.held_out_directions(axes, n, "lobe", sets, turns, exponent)
+        values = environment_values(env, world.reshape(-1, 3)).reshape(world.shape[:-1])
+        width = gp_settings.lobe_width(exponent)
+        _lobe_chosen[key] = gp_settings.choose(
+            {"lobe": values}, truth, n, noises=gp_settings.NOISES,
+            length_scales=[width * r for r in gp_settings.LOBE_LENGTH_SCALES],
+            prior_mean=prior_mean, sets=sets, spp=spp, exponent=exponent), exponent
+    return _lobe_chosen[key]

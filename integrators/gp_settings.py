@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .gp_quadrature import GOLDEN, MAPPINGS, Weights, set_shift, weights
+from .gp_quadrature import GOLDEN, MAPPINGS, Weights, lobe_directions, set_shift, weights
 
 #: σ_n²/σ² tried by :func:`choose`: an interpolating GP, a smoothing one, and
 #: one that is nearly an equal-weight average (the heavy-tailed maps' best).
@@ -26,6 +26,29 @@ NOISES = (1e-3, 1e-1, 10.0)
 #: grid for every N, so kernel means are shared (beyond 2, k̃ is nearly
 #: flat on the hemisphere).
 LENGTH_SCALES = np.geomspace(0.08, 2.0, 15)
+
+
+#: Lobe exponents the glossy set is tabulated for, four per octave from 1 to
+#: 1024: a shading point takes the nearest to its lobe's n (in log n). The
+#: GP then models L_i·cos^{n − n_q}·cos θ, which an exponent an octave off
+#: makes vary as much as the lobe itself: the weights erred by 2-4 % on it.
+STEPS_PER_OCTAVE = 4
+EXPONENTS = tuple(2.0 ** (k / STEPS_PER_OCTAVE) for k in range(10 * STEPS_PER_OCTAVE + 1))
+#: The glossy set's ℓ tried, in lobe widths √(2/(n + 1)) (the kernel then
+#: spans as many of the lobe's nodes whatever its width).
+LOBE_LENGTH_SCALES = (0.5, 0.71, 1.0, 1.41, 2.0, 2.83)
+
+
+def nearest_exponent(n: float) -> float:
+    """The EXPONENTS entry nearest ``n`` in log n (the first below it, the last above)."""
+    k = int(np.clip(np.round(np.log2(max(float(n), 1.0)) * STEPS_PER_OCTAVE), 0,
+                    len(EXPONENTS) - 1))
+    return EXPONENTS[k]
+
+
+def lobe_width(exponent: float) -> float:
+    """√(2/(n + 1)): about the rms angle of the lobe cosⁿ α (1 for n = 1)."""
+    return float(np.sqrt(2.0 / (exponent + 1.0)))
 
 
 def length_scale_floor(n: int) -> float:
@@ -62,19 +85,22 @@ def tangent_frames(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def held_out_directions(normals: np.ndarray, n: int, mapping: str, sets: int,
-                        turns: int) -> np.ndarray:
+                        turns: int, exponent: float = 1.0) -> np.ndarray:
     """The nodes about each of M unit normals at every (set, turn) of a grid
     of sets × turns shading points: sample k takes set s = k mod ``sets``
     (:func:`set_shift`) and turn t = k div ``sets``, turned about the normal
     by frac(m/Φ + (t + (s + ½)/sets)/turns) of 2π (evenly spaced turns, each
-    set's own offset). World directions (M, sets·turns, n, 3)."""
+    set's own offset). World directions (M, sets·turns, n, 3). With
+    ``mapping`` "lobe", the nodes of the Phong lobe of ``exponent`` about
+    each of the M unit axes given as ``normals``."""
     m, k = len(normals), np.arange(sets * turns)
     shifts = np.array([set_shift(s, sets, n) for s in range(sets)])[k % sets]
     u = np.mod((np.arange(n) + 0.5) / n + shifts[:, None], 1.0)         # (K, n)
     turn = np.mod(np.mod(np.arange(m) / GOLDEN, 1.0)[:, None]
                   + (k // sets + (k % sets + 0.5) / sets) / turns, 1.0)  # (m, K)
     v = np.mod(np.arange(n) / GOLDEN + turn[..., None], 1.0)
-    local = MAPPINGS[mapping](np.broadcast_to(u, (m, len(k), n)), v)
+    u = np.broadcast_to(u, (m, len(k), n))
+    local = lobe_directions(u, v, exponent) if mapping == "lobe" else MAPPINGS[mapping](u, v)
     s, t = tangent_frames(normals)
     return (local[..., :1] * s[:, None, None] + local[..., 1:2] * t[:, None, None]
             + local[..., 2:] * np.asarray(normals, np.float64)[:, None, None])
@@ -112,10 +138,10 @@ def held_out_relmse(values: np.ndarray, truth: np.ndarray, a: np.ndarray,
 
 
 def set_weights(n: int, length_scale: float, noise: float, prior_mean: str, mapping: str,
-                sets: int) -> list[Weights]:
+                sets: int, exponent: float = 1.0) -> list[Weights]:
     """:func:`weights` of each of ``sets`` shifted sets (:func:`set_shift`)."""
-    return [weights(n, length_scale, noise, prior_mean, mapping, set_shift(s, sets, n))
-            for s in range(sets)]
+    return [weights(n, length_scale, noise, prior_mean, mapping, set_shift(s, sets, n),
+                    exponent) for s in range(sets)]
 
 
 def calibration_factor(values: np.ndarray, truth: np.ndarray, tables: list[Weights]) -> float:
@@ -174,7 +200,8 @@ SIGNIFICANCE = 2.0
 
 
 def choose(values: dict, truth: np.ndarray, n: int, noises=NOISES, length_scales=None,
-           prior_mean: str = "constant", sets: int = 1, spp: int = 1) -> Choice:
+           prior_mean: str = "constant", sets: int = 1, spp: int = 1,
+           exponent: float = 1.0) -> Choice:
     """The (mapping, noise, ℓ) whose weights give a pixel of ``spp`` shading
     points the least error on the held-out set (:func:`held_out_errors`),
     where it beats the safe candidate significantly; else the safe one.
@@ -186,8 +213,9 @@ def choose(values: dict, truth: np.ndarray, n: int, noises=NOISES, length_scales
     per-normal differences (with one normal, never). ``values`` maps each mapping tried to its
     (M, K, n) node values (at :func:`held_out_directions` with ``sets``);
     ``noises`` and ``length_scales`` (default :func:`length_scale_grid`)
-    are the candidates (one value each where the user fixed it). Raises
-    ValueError if no candidate can be solved.
+    are the candidates (one value each where the user fixed it); a mapping
+    "lobe" scores the Phong lobe of ``exponent``. Raises ValueError if no
+    candidate can be solved.
     """
     grid = length_scale_grid(n) if length_scales is None else np.asarray(length_scales)
     rows, errors = [], []
@@ -199,7 +227,8 @@ def choose(values: dict, truth: np.ndarray, n: int, noises=NOISES, length_scales
                 for ell in grid:
                     try:
                         a = [w.weights for w in set_weights(n, float(ell), float(noise),
-                                                            prior_mean, mapping, sets)]
+                                                            prior_mean, mapping, sets,
+                                                            exponent)]
                         e = held_out_errors(y, truth, np.array(a), spp)
                     except ValueError:
                         e = None
@@ -220,6 +249,6 @@ def choose(values: dict, truth: np.ndarray, n: int, noises=NOISES, length_scales
     c = rows[best]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        tables = set_weights(n, c.length_scale, c.noise, prior_mean, c.mapping, sets)
+        tables = set_weights(n, c.length_scale, c.noise, prior_mean, c.mapping, sets, exponent)
     return Choice(c.mapping, c.noise, c.length_scale, c.relmse, tuple(rows),
                   calibration_factor(values[c.mapping], truth, tables))

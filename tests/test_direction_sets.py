@@ -480,6 +480,27 @@ def test_held_out_normals_are_those_the_camera_sees(llvm):
     assert bh.held_out_normals(empty)[:, 2].min() < -0.9
 
 
+def test_held_out_lobes_are_mirror_directions_with_the_bsdfs_exponent(llvm):
+    """On lone_phong_sphere (orthographic along −z, exponent 30) each held-out
+    axis is the camera ray mirrored about the sphere's normal, and the
+    exponent read off the glossy density is the BSDF's own; under a constant
+    map the lobe's held-out integral is that constant."""
+    from mcillum.integrators import gp_scene
+    scene = phong_sphere(16, envmap="constant", exponent=30)
+    axes, exponents = gp_scene.held_out_lobes(scene)
+    assert len(axes) == 64
+    np.testing.assert_allclose(exponents, 30.0, rtol=1e-3)
+    # r = d − 2(d·n)n for d = −z: the normal halves −d and r. The film spans
+    # [−0.7, 0.7]² of the unit sphere, so the normals' x spreads as a uniform
+    # grid there does (std 0.7/√3); a normal or a view direction returned
+    # for r would give half of it or none.
+    normals = (axes + [0, 0, 1]) / np.linalg.norm(axes + [0, 0, 1], axis=1, keepdims=True)
+    assert normals[:, 0].std() == pytest.approx(0.7 / np.sqrt(3), rel=0.1)
+    assert abs(normals[:, 0].mean()) < 0.05 and (normals[:, 2] > 0).all()
+    truth = gp_scene.held_out_lobe_truth(scene.environment(), axes, 32.0)
+    np.testing.assert_allclose(truth, environment_radiance(scene).mean(), rtol=1e-5)
+
+
 @pytest.mark.parametrize("envmap, n, bound", [("sg", 16, 0.5), ("courtyard", 64, 1.0)])
 def test_bayesian_defaults_beat_fibonacci_at_equal_rays(llvm, envmap, n, bound):
     """The issue's goal, on the lone sphere at equal rays: with the settings
