@@ -9,7 +9,7 @@ import warnings
 import drjit as dr
 import mitsuba as mi
 
-from . import gp_quadrature, gp_settings, registry, scene_checks
+from . import gp_settings, registry, scene_checks
 from .direction_set import DirectionSetEstimator
 from .estimator import over_pdf
 from .fibonacci_hemisphere import MAPPINGS, fibonacci_point
