@@ -396,9 +396,12 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
         in_a = j < n_a
         j_b = j - n_a
 
-        # Diffuse set: cos θ / π about the normal, u shifted by set_shift(which, sets, N_a)
+        # Diffuse set: cos θ / π about the normal, u shifted by set_shift(which, sets, N_a),
+        # mapped as its weights were computed (the split's mapping at a glossy point)
         shift = ((mi.Float(which) + 0.5) / self.sets - 0.5) / mi.Float(n_a)
-        w_up = MAPPINGS[self.mapping][0](fibonacci_point(j, n_a, mi.Point2f(shift, turn)))
+        u = fibonacci_point(j, n_a, mi.Point2f(shift, turn))
+        split_mapping = self._split_used[2]
+        w_up = dr.select(lobe, MAPPINGS[split_mapping][0](u), MAPPINGS[self.mapping][0](u))
         wo_a = mi.Vector3f(w_up.x, w_up.y, dr.mulsign(w_up.z, si.wi.z))
         # Lobe set: (n + 1)/(2π) cosⁿ α about the mirror direction r
         n_q = dr.exp2(mi.Float(q) / STEPS_PER_OCTAVE)
