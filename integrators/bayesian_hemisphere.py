@@ -242,6 +242,10 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
         #: last checked has a glossy lobe (its weights are tabulated then).
         self.lobe_directions = self.directions // 2 if self.directions >= 4 else 0
         self.glossy = False
+        #: The settings of a glossy point's two sets (diffuse ℓ, noise, mapping, κ;
+        #: lobe ℓ in lobe widths, noise, κ), the lobe's gp_settings.Choice and the
+        #: exponent it was scored at, once a scene with glossy lobes is checked.
+        self.split, self.lobe_choice, self.lobe_exponent = None, None, None
         self._use(float(ell) if isinstance(ell, (int, float)) else DEFAULT_LENGTH_SCALE,
                   noise if noise != "auto" else DEFAULT_NOISE,
                   mapping if mapping != "auto" else DEFAULT_MAPPING)
@@ -286,6 +290,7 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
             diffuse = settings(self.directions - self.lobe_directions)[2]
             self.lobe_choice, scored_at = choose_lobe_settings(
                 scene, self.lobe_directions, self.prior_mean, self.sets, spp)
+            self.lobe_exponent = scored_at if self.lobe_choice is not None else None
             c = self.lobe_choice
             lobe = (LOBE_LENGTH_SCALE, LOBE_NOISE, diffuse[3]) if c is None else (
                 c.length_scale / gp_settings.lobe_width(scored_at), c.noise, c.calibration)
@@ -298,9 +303,17 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
         rows = [] if self.choice is None or len(self.choice.candidates) < 2 else [
             {"mapping": c.mapping, "noise": c.noise, "length_scale": c.length_scale,
              "relmse": c.relmse} for c in self.choice.candidates]
+        glossy = None
+        if self.split is not None:
+            mapping, noise, ell, lobe_ell, lobe_noise, lobe_kappa = (
+                self.split[2], self.split[1], self.split[0], *self.split[4:])
+            glossy = {"lobe_directions": self.lobe_directions, "diffuse_mapping": mapping,
+                      "diffuse_noise": noise, "diffuse_length_scale": ell,
+                      "lobe_length_scale": lobe_ell, "lobe_noise": lobe_noise,
+                      "lobe_calibration": lobe_kappa, "lobe_exponent": self.lobe_exponent}
         return {"source": self.source, "mapping": self.mapping, "noise": self.noise,
                 "length_scale": self.length_scale, "spp": int(spp),
-                "calibration": self.calibration, "candidates": rows}
+                "calibration": self.calibration, "candidates": rows, "glossy": glossy}
 
     def _use(self, length_scale: float, noise: float, mapping: str,
              calibration: float = 1.0, split: tuple | None = None) -> None:

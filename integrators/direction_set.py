@@ -136,7 +136,9 @@ class DirectionSetEstimator(IlluminationEstimator):
     def chosen_settings(self, scene, spp: int) -> dict | None:
         """How the settings this estimator uses on ``scene`` at ``spp`` were
         chosen (keys: source, mapping, noise, length_scale, spp,
-        candidates); None where it has none to choose."""
+        candidates, and optionally glossy: the settings of the sets at a
+        glossy point, validation/results/quadrature.GlossySettings' fields);
+        None where it has none to choose."""
         return None
 
     # ----------------------------- Estimator -----------------------------

@@ -590,6 +590,42 @@ def test_the_settings_chosen_reach_results_and_report(llvm):
     assert "<svg" in html and f"ℓ = {auto.length_scale:.3g}" in html
     q.settings = given
     assert "<svg" not in report_scenes._settings(q, {"bayesian_hemisphere": "#8c564b"})
+    assert auto.glossy is None and "glossy" not in item["settings"]
+
+
+def test_the_glossy_sets_settings_reach_results_and_report(llvm):
+    """On a glossy scene the settings of a glossy point's two sets are
+    recorded too (the diffuse set's for its N − N_b nodes, the lobe set's
+    in lobe widths with the exponent scored at), kept within the schema and
+    read back, and the report says them."""
+    import json
+    import types
+
+    import jsonschema
+
+    from mcillum.integrators import gp_settings
+    from mcillum.validation import results
+    from mcillum.validation.report import scenes as report_scenes
+    from mcillum.validation.results import json_io
+    from mcillum.validation.run import jobs
+    from mcillum.validation.stages import quadrature
+
+    ctx = types.SimpleNamespace(scene=phong_sphere(8, envmap="gradient", exponent=30),
+                                integrators={"auto": jobs.make("bayesian_hemisphere",
+                                                               {"directions": 16})})
+    st = quadrature._settings(ctx, "auto", 16)
+    g = st.glossy
+    assert g.lobe_directions == 8 and g.lobe_exponent == pytest.approx(2 ** (20 / 4))
+    assert g.lobe_length_scale in gp_settings.LOBE_LENGTH_SCALES and g.lobe_calibration > 0
+    q = results.Quadrature(name="bayesian_hemisphere", directions=16, spp=16, renders=4,
+                           settings=st)
+    item = json.loads(json.dumps(json_io.to_json(q), allow_nan=False, default=str))
+    schema = json.load(open(results.SCHEMA_FILE))
+    jsonschema.validate(item, schema["properties"]["scenes"]["items"]["properties"]
+                        ["quadrature"]["items"])
+    assert json_io.from_json(results.Quadrature, item).settings.glossy == g
+    html = report_scenes._settings(q, {"bayesian_hemisphere": "#8c564b"})
+    assert "8 about the mirror direction" in html and "lobe widths" in html
 
 
 def _calibration_medians(envmap: str) -> dict[int, float]:

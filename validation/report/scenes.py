@@ -121,13 +121,27 @@ def _settings(q, colours: dict) -> str:
             + (f"; posterior variance × {st.calibration:.3g}, the factor that makes it "
                "predict the held-out errors spp does not average away"
                if st.calibration != 1.0 else "") + ".")
+    glossy = _glossy_settings(st.glossy, q.directions) if st.glossy else ""
     if not st.candidates:
-        return text + "</p>"
+        return text + glossy + "</p>"
     return (text + " Each candidate is scored by the relative squared error a pixel of "
             f"{st.spp} spp gets on known integrals (the environment map about the normals "
             "the camera sees); the least error wins where it beats the safe candidate "
             "(largest σ_n²/σ² and ℓ: nearly equal weights) by more than two standard "
-            "errors.</p>" + charts.settings_curve(q))
+            "errors (the chart below)." + glossy + "</p>" + charts.settings_curve(q))
+
+
+def _glossy_settings(g, n: int) -> str:
+    """The two sets of a glossy shading point, in a sentence."""
+    scored = (f"chosen the same way on the lobes about the mirror directions the camera "
+              f"sees, scored at exponent {g.lobe_exponent:.3g}"
+              if g.lobe_exponent is not None else "defaults: no map to score them on")
+    return (f" On glossy surfaces its directions form two sets: {n - g.lobe_directions} "
+            f"about the normal ({html.escape(g.diffuse_mapping)} nodes, "
+            f"σ_n²/σ² = {g.diffuse_noise:g}, ℓ = {g.diffuse_length_scale:.3g}, chosen for "
+            f"that many) and {g.lobe_directions} about the mirror direction in the lobe "
+            f"(σ_n²/σ² = {g.lobe_noise:g}, ℓ = {g.lobe_length_scale:.3g} lobe widths; "
+            f"{scored}; posterior variance × {g.lobe_calibration:.3g}).")
 
 
 

@@ -21,8 +21,8 @@ from .common import OUTCOMES, Check, ReferenceSummary, having  # noqa: F401
 from .json_io import (SCHEMA_FILE, NoResultsError, ResultsError, from_json, load,  # noqa: F401
                       to_json, write_json)
 from .learning import Learning, LearningPoint  # noqa: F401
-from .quadrature import (BiasAtN, Calibration, EqualRays, Quadrature,  # noqa: F401
-                         SettingScore, Settings)
+from .quadrature import (BiasAtN, Calibration, EqualRays, GlossySettings,  # noqa: F401
+                         Quadrature, SettingScore, Settings)
 from .run import MINOR_VERSION, SCHEMA, VERSION, EstimatorInfo, Results  # noqa: F401
 from .scene import (Convergence, EstimatorResult, RunStats, SceneResult,  # noqa: F401
                     Unbiasedness)

@@ -54,6 +54,22 @@ class SettingScore:
 
 
 @dataclass(kw_only=True)
+class GlossySettings:
+    """bayesian_hemisphere's two sets at a glossy shading point: the diffuse
+    set's settings for its N − N_b nodes, and the lobe set's."""
+
+    lobe_directions: int         # N_b
+    diffuse_mapping: str
+    diffuse_noise: float
+    diffuse_length_scale: float
+    lobe_length_scale: float     # in lobe widths √(2/(n + 1))
+    lobe_noise: float
+    lobe_calibration: float      # what the lobe set's posterior variance is scaled by
+    #: the exponent the lobe's candidates were scored at (None: not scored, defaults)
+    lobe_exponent: float | None = None
+
+
+@dataclass(kw_only=True)
 class Settings:
     """How an estimator chose its settings for the scene (bayesian_hemisphere's
     ``auto``): what it chose, how, and every candidate's score."""
@@ -66,6 +82,8 @@ class Settings:
     #: what the posterior variance is scaled by (held-out calibration; 1: none)
     calibration: float = 1.0
     candidates: list[SettingScore] | None = optional()
+    #: where the scene has glossy lobes (minor version 13)
+    glossy: GlossySettings | None = optional()
 
 
 @dataclass(kw_only=True)

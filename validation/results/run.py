@@ -37,7 +37,9 @@ VERSION = 1
 #: 12: a heavy-tail failure row's sun split may carry ``widened``,
 #: ``widened_outcome``, ``widened_reason`` and ``widened_test``: the same test
 #: with the map's sun widened, where the real sun's was inconclusive.
-MINOR_VERSION = 12
+#: 13: a quadrature estimator's ``settings`` may carry ``glossy``: the
+#: settings of the two sets at a glossy shading point.
+MINOR_VERSION = 13
 
 
 @dataclass(kw_only=True)

@@ -36,7 +36,8 @@ import numpy as np
 from mcillum.integrators import registry
 
 from ..checks import convergence
-from ..results import BiasAtN, Calibration, EqualRays, Quadrature, SettingScore, Settings
+from ..results import (BiasAtN, Calibration, EqualRays, GlossySettings, Quadrature,
+                       SettingScore, Settings)
 from ..run import stacks
 from ..stats import metrics
 from . import common
@@ -103,7 +104,9 @@ def _settings(ctx, name, spp) -> Settings | None:
     if found is None:
         return None
     rows = [SettingScore(**row) for row in found.pop("candidates")]
-    return Settings(**found, candidates=rows or None)
+    glossy = found.pop("glossy", None)
+    return Settings(**found, candidates=rows or None,
+                    glossy=GlossySettings(**glossy) if glossy else None)
 
 
 def _renders(ctx, name, params, spp, k, block, timed=False) -> stacks.Stack:
