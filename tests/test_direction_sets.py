@@ -355,26 +355,34 @@ def test_bayesian_bias_on_a_glossy_lobe_and_its_weight_twin(llvm):
     is within ±0.5 % (measured −0.12 %; −0.24 % at N = 16) and bias_limit
     does not fail it (measured rms bias 2.1 % ± 0.7 at N = 16, 0.9 % ± 0.8
     at 64); its twin with every weight × 0.95 fails bias_limit (about −5 %)."""
+    got = _bias_limit_with_weight_twin(phong_sphere(8), 65536, {}, 64, (16, 64))
+    outcome, rows = got["bayesian_hemisphere"]
+    assert abs(rows[1].mean_bias) < 0.005 and outcome != "fail", got
+    outcome, rows = got["twin"]
+    assert outcome == "fail" and rows[1].mean_bias == pytest.approx(-0.05, abs=0.01), got
+
+
+def _bias_limit_with_weight_twin(scene, reference_spp, params, spp, ns) -> dict:
+    """{"bayesian_hemisphere" and "twin" (every weight × 0.95): (bias_limit
+    outcome, the quadrature stage's bias rows at ``ns``)}, from 8 renders of
+    ``spp`` against 8 of `path` at ``reference_spp``."""
     from mcillum.validation.checks import convergence
     from mcillum.validation.stages import quadrature
-    scene = phong_sphere(8)
-    path = batch(scene, renders.make_integrator("path", {"max_depth": 2}), 65536, 8,
+    path = batch(scene, renders.make_integrator("path", {"max_depth": 2}), reference_spp, 8,
                  first_seed=REFERENCE_SEED)
     ref = _Reference(path.mean(axis=0), path.var(axis=0, ddof=1) / len(path))
     twin = twins.set_weight_class("bayesian_hemisphere", 0.95)
     registry.register(twin)
     try:
         got = {}
-        for name in ("bayesian_hemisphere", twin.plugin_name):
+        for key, name in (("bayesian_hemisphere", "bayesian_hemisphere"),
+                          ("twin", twin.plugin_name)):
             rows = [quadrature._bias(_stack(batch(scene, renders.make_integrator(
-                name, {"directions": n}), 64, 8)), ref, n) for n in (16, 64)]
-            got[name] = convergence.bias_limit_outcome(*rows)[0], rows
+                name, {"directions": n, **params}), spp, 8)), ref, n) for n in ns]
+            got[key] = convergence.bias_limit_outcome(*rows)[0], rows
     finally:
         registry.unregister(twin.plugin_name)
-    outcome, rows = got["bayesian_hemisphere"]
-    assert abs(rows[1].mean_bias) < 0.005 and outcome != "fail", got
-    outcome, rows = got[twin.plugin_name]
-    assert outcome == "fail" and rows[1].mean_bias == pytest.approx(-0.05, abs=0.01), got
+    return got
 
 
 @pytest.mark.slow
@@ -404,25 +412,10 @@ def test_bayesian_weight_twin_fails_and_the_estimator_passes_the_bias_limit(llvm
     estimator's bias at N = 256 is within convergence.BIAS_LIMIT (pass); its
     twin with every weight × 0.95 keeps about 5 % (fail), though its bias
     falls from N = 16 to 256 too (the old rule passed it)."""
-    from mcillum.validation.checks import convergence
-    from mcillum.validation.stages import quadrature
-    scene = renders.load_scene(scenes.path("lone_sphere"), res=8, envmap="sg")
-    path = batch(scene, renders.make_integrator("path", {"max_depth": 2}), 4096, 8,
-                 first_seed=REFERENCE_SEED)
-    ref = _Reference(path.mean(axis=0), path.var(axis=0, ddof=1) / len(path))
-    twin = twins.set_weight_class("bayesian_hemisphere", 0.95)
-    registry.register(twin)
-    try:
-        got = {}
-        for name in ("bayesian_hemisphere", twin.plugin_name):
-            rows = [quadrature._bias(_stack(batch(scene, renders.make_integrator(
-                name, {"directions": n, "length_scale": 0.5}), 16, 8)), ref, n)
-                for n in (16, 256)]
-            got[name] = convergence.bias_limit_outcome(*rows)[0], rows
-    finally:
-        registry.unregister(twin.plugin_name)
+    got = _bias_limit_with_weight_twin(lone_sphere(8, envmap="sg"), 4096,
+                                       {"length_scale": 0.5}, 16, (16, 256))
     assert got["bayesian_hemisphere"][0] == "pass", got
-    assert got[twin.plugin_name][0] == "fail", got
+    assert got["twin"][0] == "fail", got
 
 
 def test_fibonacci_glossy_set_lowers_the_variance(llvm):
