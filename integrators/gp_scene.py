@@ -97,6 +97,13 @@ def held_out_normals(scene, m: int = HELD_OUT_NORMALS) -> np.ndarray:
     them evenly spaced in the grid's order where more rays hit (a small
     object in view still gives m); a Fibonacci sphere of m directions where
     fewer than m/8 rays hit a surface."""
+    return held_out_surface(scene, m)[0]
+
+
+def held_out_surface(scene, m: int = HELD_OUT_NORMALS):
+    """(normals, origins) of :func:`held_out_normals`: the origins (M, 3) are
+    the surface points, moved off the surface along the normal, that the
+    held-out rays leave from (None with the Fibonacci sphere)."""
     side = 4 * int(round(m ** 0.5))
     g = (np.arange(side) + 0.5) / side
     x, y = [a.ravel() for a in np.meshgrid(g, g)]
@@ -109,29 +116,55 @@ def held_out_normals(scene, m: int = HELD_OUT_NORMALS) -> np.ndarray:
         # direction, comes back as one entry)
         n = np.broadcast_to(np.array(si.sh_frame.n, dtype=float).T, (len(x), 3))
         d = np.broadcast_to(np.array(ray.d, dtype=float).T, (len(x), 3))
+        p = np.broadcast_to(np.array(si.p, dtype=float).T, (len(x), 3))
         hit = np.broadcast_to(np.array(si.is_valid(), dtype=bool), (len(x),))
-        found = [(a, b) for a, b, h in zip(n, d, hit) if h]
+        found = [(a, b, c) for a, b, c, h in zip(n, d, p, hit) if h]
     else:
         for px, py in zip(x, y):
             ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(px, py), mi.Point2f(0.5, 0.5))
             si = scene.ray_intersect(ray)
             if si.is_valid():
                 found.append((np.array(si.sh_frame.n, dtype=float).ravel(),
-                              np.array(ray.d, dtype=float).ravel()))
+                              np.array(ray.d, dtype=float).ravel(),
+                              np.array(si.p, dtype=float).ravel()))
     if len(found) < max(1, m // 8):
-        return sphere_directions(m)
+        return sphere_directions(m), None
     if len(found) > m:
         found = [found[i] for i in np.linspace(0, len(found) - 1, m).round().astype(int)]
-    n = np.array([a for a, _ in found])
-    d = np.array([b for _, b in found])
+    n = np.array([a for a, _, _ in found])
+    d = np.array([b for _, b, _ in found])
     n *= np.where(np.sum(n * d, axis=1) > 0, -1.0, 1.0)[:, None]
-    return n / np.linalg.norm(n, axis=1, keepdims=True)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    return n, off_surface(np.array([c for _, _, c in found]), n)
 
 
-def held_out_truth(env, normals: np.ndarray, samples: int = TRUTH_SAMPLES) -> np.ndarray:
-    """I(n) = ∫ L(ω) max(0, ω·n)/π dω for each normal, channel mean, from
-    ``samples`` draws of the emitter's sample_direction (L/p per draw) at
-    the points of a Fibonacci lattice, shared by all normals."""
+def off_surface(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Points moved off their surface along the normal, by 1e-4 of their
+    distance from the origin (at least 1e-4): rays leaving them do not find
+    the surface they start on."""
+    scale = 1e-4 * np.maximum(1.0, np.linalg.norm(points, axis=1, keepdims=True))
+    return points + scale * normals
+
+
+def unoccluded(scene, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """Whether rays from ``origins`` along ``directions`` (each (k, 3)) leave
+    the scene, i.e. see the environment: (k,) bool. Scalar variants do not
+    trace them (a Python call per ray): all True."""
+    k = len(directions)
+    if not dr.is_jit_v(mi.Float) or k == 0:
+        return np.ones(k, dtype=bool)
+    o, d = origins.astype(np.float32), directions.astype(np.float32)
+    ray = mi.Ray3f(mi.Point3f(o[:, 0], o[:, 1], o[:, 2]), mi.Vector3f(d[:, 0], d[:, 1], d[:, 2]))
+    return ~np.broadcast_to(np.array(scene.ray_test(ray), dtype=bool), (k,))
+
+
+def held_out_truth(env, normals: np.ndarray, samples: int = TRUTH_SAMPLES,
+                   scene=None, origins: np.ndarray | None = None) -> np.ndarray:
+    """I(n) = ∫ L(ω) V(ω) max(0, ω·n)/π dω for each normal, channel mean,
+    from ``samples`` draws of the emitter's sample_direction (L/p per draw)
+    at the points of a Fibonacci lattice, shared by all normals. V is 1
+    where the ray from the normal's origin escapes the ``scene`` (with
+    ``origins``; else 1 everywhere: the map alone)."""
     u = np.stack(gp_quadrature.fibonacci_square(samples), axis=1)
     if dr.is_jit_v(mi.Float):
         it = dr.zeros(mi.Interaction3f, samples)
@@ -150,15 +183,29 @@ def held_out_truth(env, normals: np.ndarray, samples: int = TRUTH_SAMPLES) -> np
             w.append(np.array(weight, dtype=float).ravel())
         d, w = np.array(d), np.array(w)
     w = w.reshape(samples, -1).mean(axis=1)
-    return np.maximum(normals @ d.T, 0.0) @ w / (np.pi * samples)
+    cos = np.maximum(normals @ d.T, 0.0)
+    if origins is not None:
+        m = len(normals)
+        cos *= unoccluded(scene, np.repeat(origins, samples, axis=0),
+                          np.tile(d, (m, 1))).reshape(m, samples)
+    return cos @ w / (np.pi * samples)
 
 
-def held_out_values(env, normals: np.ndarray, n: int, mapping: str, sets: int) -> np.ndarray:
-    """The map at gp_settings.held_out_directions: (M, K, n), K = sets ×
-    turns, turns = max(4, ⌈HELD_OUT_SAMPLES/sets⌉)."""
+def held_out_values(env, normals: np.ndarray, n: int, mapping: str, sets: int,
+                    scene=None, origins: np.ndarray | None = None,
+                    exponent: float = 1.0) -> np.ndarray:
+    """The light at gp_settings.held_out_directions: (M, K, n), K = sets ×
+    turns, turns = max(4, ⌈HELD_OUT_SAMPLES/sets⌉): the map where the ray
+    from the normal's origin escapes the ``scene``, 0 where it is blocked
+    (with ``origins``; else the map alone)."""
     turns = max(4, -(-HELD_OUT_SAMPLES // sets))
-    world = gp_settings.held_out_directions(normals, n, mapping, sets, turns)
-    return environment_values(env, world.reshape(-1, 3)).reshape(world.shape[:-1])
+    world = gp_settings.held_out_directions(normals, n, mapping, sets, turns, exponent)
+    values = environment_values(env, world.reshape(-1, 3))
+    if origins is not None:
+        per = world.shape[1] * world.shape[2]
+        values = values * unoccluded(scene, np.repeat(origins, per, axis=0),
+                                     world.reshape(-1, 3))
+    return values.reshape(world.shape[:-1])
 
 
 #: (map fingerprint, N, fixed settings) → gp_settings.Choice
@@ -187,14 +234,25 @@ _held_out_cache: dict = {}
 HELD_OUT_KEPT = 4
 
 
-def _held_out(env, view: str, normals, n: int, mappings: tuple, sets: int):
+def _held_out(scene, view: str, normals, origins, n: int, mappings: tuple, sets: int):
     key = (view, n, mappings, sets)
     if key not in _held_out_cache:
         while len(_held_out_cache) >= HELD_OUT_KEPT:
             _held_out_cache.pop(next(iter(_held_out_cache)))
-        _held_out_cache[key] = (held_out_truth(env, normals),
-                                {m: held_out_values(env, normals, n, m, sets) for m in mappings})
+        env = scene.environment()
+        _held_out_cache[key] = (
+            held_out_truth(env, normals, scene=scene, origins=origins),
+            {m: held_out_values(env, normals, n, m, sets, scene, origins) for m in mappings})
     return _held_out_cache[key]
+
+
+def _view(samples, *arrays) -> str:
+    """A fingerprint of the map (its samples) and of the held-out geometry."""
+    h = hashlib.sha1(np.ascontiguousarray(samples[1], np.float64).tobytes())
+    for a in arrays:
+        if a is not None:
+            h.update(np.round(a, 6).tobytes())
+    return h.hexdigest()
 
 
 def choose_hyperparameters(scene, n: int, length_scale, noise, mapping,
@@ -208,14 +266,12 @@ def choose_hyperparameters(scene, n: int, length_scale, noise, mapping,
     samples, why = informative_samples(scene)
     if samples is None:
         return None, f"default ({why})"
-    _, y = samples
-    normals = held_out_normals(scene)
-    view = hashlib.sha1(np.ascontiguousarray(y, np.float64).tobytes()
-                        + np.round(normals, 6).tobytes()).hexdigest()
+    normals, origins = held_out_surface(scene)
+    view = _view(samples, normals, origins)
     key = (view, n, length_scale, noise, mapping, prior_mean, sets, spp)
     if key not in _chosen:
         mappings = tuple(gp_quadrature.MAPPINGS) if mapping == "auto" else (mapping,)
-        truth, values = _held_out(scene.environment(), view, normals, n, mappings, sets)
+        truth, values = _held_out(scene, view, normals, origins, n, mappings, sets)
         _chosen[key] = gp_settings.choose(
             values, truth, n,
             noises=gp_settings.NOISES if noise == "auto" else (noise,),
@@ -235,12 +291,13 @@ def choose_hyperparameters(scene, n: int, length_scale, noise, mapping,
 LOBE_TRUTH_SAMPLES = 1 << 12
 
 
-def held_out_lobes(scene, m: int = HELD_OUT_NORMALS) -> tuple[np.ndarray, np.ndarray]:
-    """(axes (M, 3), exponents (M,)) at the glossy surfaces the first sensor
-    sees through a 4√m × 4√m film grid, M ≤ m evenly spaced in the grid's
-    order: the mirror direction of the camera ray about the shading normal,
-    and the exponent of the Phong lobe of the same density there,
-    2π·p_glossy(r) − 1. Empty arrays where no glossy surface is seen."""
+def held_out_lobes(scene, m: int = HELD_OUT_NORMALS):
+    """(axes (M, 3), exponents (M,), origins (M, 3)) at the glossy surfaces the
+    first sensor sees through a 4√m × 4√m film grid, M ≤ m evenly spaced in
+    the grid's order: the mirror direction of the camera ray about the
+    shading normal, the exponent of the Phong lobe of the same density
+    there, 2π·p_glossy(r) − 1, and the point held-out rays leave from
+    (off_surface). Empty arrays where no glossy surface is seen."""
     side = 4 * int(round(m ** 0.5))
     g = (np.arange(side) + 0.5) / side
     x, y = [a.ravel() for a in np.meshgrid(g, g)]
@@ -257,38 +314,51 @@ def held_out_lobes(scene, m: int = HELD_OUT_NORMALS) -> tuple[np.ndarray, np.nda
         r = mi.reflect(si.wi)
         peak = bsdf.pdf(ctx, si, r, si.is_valid())
         ok = si.is_valid() & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Glossy) & (peak > 0)
-        return si.to_world(r), dr.two_pi * peak - 1.0, ok
+        # (the side the camera sees: the normal turned towards it)
+        n = si.to_world(mi.Vector3f(0, 0, dr.sign(si.wi.z)))
+        return si.to_world(r), dr.two_pi * peak - 1.0, ok, si.p, n
+
+    def rows(value, count):
+        a = np.array(value, dtype=float)
+        return np.broadcast_to(a.T if a.ndim == 2 else a, (count, 3) if a.ndim == 2 else (count,))
 
     if dr.is_jit_v(mi.Float):
-        r, n, ok = lobe_at(x, y)
+        r, n, ok, p, nrm = lobe_at(x, y)
         count = len(x)
-        r = np.broadcast_to(np.array(r, dtype=float).T, (count, 3))
-        n = np.broadcast_to(np.array(n, dtype=float), (count,))
-        ok = np.broadcast_to(np.array(ok, dtype=bool), (count,))
-        found = [(a, b) for a, b, h in zip(r, n, ok) if h]
+        found = [row for *row, h in zip(rows(r, count), rows(n, count), rows(p, count),
+                                        rows(nrm, count), rows(ok, count)) if h]
     else:
         found = []
         for px, py in zip(x, y):
-            r, n, ok = lobe_at(px, py)
+            r, n, ok, p, nrm = lobe_at(px, py)
             if ok:
-                found.append((np.array(r, dtype=float).ravel(), float(n)))
+                found.append([np.array(v, dtype=float).ravel() for v in (r, n, p, nrm)])
     if len(found) > m:
         found = [found[i] for i in np.linspace(0, len(found) - 1, m).round().astype(int)]
-    axes = np.array([a for a, _ in found], dtype=float).reshape(-1, 3)
-    return axes / np.linalg.norm(axes, axis=1, keepdims=True), \
-        np.array([b for _, b in found], dtype=float)
+    axes = np.array([f[0] for f in found], dtype=float).reshape(-1, 3)
+    exponents = np.array([float(np.ravel(f[1])[0]) for f in found], dtype=float)
+    points = np.array([f[2] for f in found], dtype=float).reshape(-1, 3)
+    normals = np.array([f[3] for f in found], dtype=float).reshape(-1, 3)
+    return axes / np.linalg.norm(axes, axis=1, keepdims=True), exponents, \
+        off_surface(points, normals)
 
 
 def held_out_lobe_truth(env, axes: np.ndarray, exponent: float,
-                        samples: int = LOBE_TRUTH_SAMPLES) -> np.ndarray:
-    """∫ L(ω) (n + 1)/(2π) cosⁿ α dω about each axis (channel mean), by a
-    shifted Fibonacci lattice of ``samples`` points mapped by the lobe."""
+                        samples: int = LOBE_TRUTH_SAMPLES, scene=None,
+                        origins: np.ndarray | None = None) -> np.ndarray:
+    """∫ L(ω) V(ω) (n + 1)/(2π) cosⁿ α dω about each axis (channel mean), by
+    a shifted Fibonacci lattice of ``samples`` points mapped by the lobe; V
+    as in :func:`held_out_truth` (1 without ``origins``)."""
     u, v = gp_quadrature.fibonacci_square(samples, 0.0)
     local = gp_quadrature.lobe_directions(u, np.mod(v + 0.5 / samples, 1.0), exponent)
     s, t = gp_settings.tangent_frames(axes)
     world = (local[None, :, :1] * s[:, None] + local[None, :, 1:2] * t[:, None]
              + local[None, :, 2:] * axes[:, None])
-    return environment_values(env, world.reshape(-1, 3)).reshape(len(axes), samples).mean(axis=1)
+    values = environment_values(env, world.reshape(-1, 3))
+    if origins is not None:
+        values = values * unoccluded(scene, np.repeat(origins, samples, axis=0),
+                                     world.reshape(-1, 3))
+    return values.reshape(len(axes), samples).mean(axis=1)
 
 
 #: (view fingerprint, N_b, exponent, prior mean, sets, spp) → (Choice, exponent)
@@ -305,21 +375,18 @@ def choose_lobe_settings(scene, n: int, prior_mean: str = "constant",
     samples, _ = informative_samples(scene)
     if samples is None:
         return None, None
-    axes, exponents = held_out_lobes(scene)
+    axes, exponents, origins = held_out_lobes(scene)
     if len(axes) == 0:
         return None, None
     exponent = gp_settings.nearest_exponent(float(np.median(exponents)))
-    view = hashlib.sha1(np.ascontiguousarray(samples[1], np.float64).tobytes()
-                        + np.round(axes, 6).tobytes()).hexdigest()
+    view = _view(samples, axes, origins)
     key = (view, n, exponent, prior_mean, sets, spp)
     if key not in _lobe_chosen:
         env = scene.environment()
         # (scalar variants evaluate the map in a Python loop: fewer points)
         truth = held_out_lobe_truth(env, axes, exponent, LOBE_TRUTH_SAMPLES
-                                    if dr.is_jit_v(mi.Float) else 1 << 9)
-        turns = max(4, -(-HELD_OUT_SAMPLES // sets))
-        world = gp_settings.held_out_directions(axes, n, "lobe", sets, turns, exponent)
-        values = environment_values(env, world.reshape(-1, 3)).reshape(world.shape[:-1])
+                                    if dr.is_jit_v(mi.Float) else 1 << 9, scene, origins)
+        values = held_out_values(env, axes, n, "lobe", sets, scene, origins, exponent)
         width = gp_settings.lobe_width(exponent)
         _lobe_chosen[key] = gp_settings.choose(
             {"lobe": values}, truth, n, noises=gp_settings.NOISES,

@@ -458,6 +458,27 @@ def test_held_out_truth_is_the_map_integrated_about_each_normal(llvm):
     np.testing.assert_allclose(bh.held_out_truth(env, normals), brute, rtol=5e-3)
 
 
+def test_held_out_integrals_see_what_occludes_them(llvm):
+    """The known answers count only light that reaches the surface: under a
+    sphere of radius 1 whose centre is 2 above a floor point, a cone of
+    half-angle 30° is blocked, sin²30° = ¼ of the cosine-weighted
+    hemisphere, so a constant map of radiance 1 gives 0.75 there (1 without
+    the scene); the node values are 0 exactly where a ray hits the sphere."""
+    from mcillum.integrators import gp_scene as bh
+    scene = mi.load_dict({"type": "scene", "sky": {"type": "constant"},
+                          "ball": {"type": "sphere", "center": [0, 0, 2], "radius": 1.0}})
+    env, up = scene.environment(), np.array([[0.0, 0.0, 1.0]])
+    origin = bh.off_surface(np.zeros((1, 3)), up)
+    assert bh.held_out_truth(env, up)[0] == pytest.approx(1.0, rel=1e-3)
+    assert bh.held_out_truth(env, up, scene=scene, origins=origin)[0] == \
+        pytest.approx(0.75, rel=5e-3)
+    values = bh.held_out_values(env, up, 64, "cosine", 1, scene, origin)
+    from mcillum.integrators import gp_settings
+    d = gp_settings.held_out_directions(up, 64, "cosine", 1, 64)
+    blocked = d[..., 2] > np.cos(np.pi / 6)
+    assert blocked.any() and (values[blocked] == 0).all() and (values[~blocked] == 1).all()
+
+
 def test_held_out_normals_are_those_the_camera_sees(llvm):
     """On the lone sphere seen from +z the held-out normals are the visible
     ones, under the view's square of half-width 0.7 (z ≥ √(1 − 2·0.7²) =
@@ -506,7 +527,7 @@ def test_held_out_lobes_are_mirror_directions_with_the_bsdfs_exponent(llvm):
     map the lobe's held-out integral is that constant."""
     from mcillum.integrators import gp_scene
     scene = phong_sphere(16, envmap="constant", exponent=30)
-    axes, exponents = gp_scene.held_out_lobes(scene)
+    axes, exponents, _ = gp_scene.held_out_lobes(scene)
     assert len(axes) == 64
     np.testing.assert_allclose(exponents, 30.0, rtol=1e-3)
     # r = d − 2(d·n)n for d = −z: the normal halves −d and r. The film spans
