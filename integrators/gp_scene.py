@@ -277,8 +277,10 @@ def choose_hyperparameters(scene, n: int, length_scale, noise, mapping,
             noises=gp_settings.NOISES if noise == "auto" else (noise,),
             length_scales=None if length_scale == "auto" else (length_scale,),
             prior_mean=prior_mean, sets=sets, spp=spp)
+    seen = (", what occludes the map included"
+            if origins is not None and dr.is_jit_v(mi.Float) else "")
     return _chosen[key], (f"least error at {spp} spp on the environment map's integrals "
-                          f"about {len(normals)} normals the camera sees")
+                          f"about {len(normals)} normals the camera sees{seen}")
 
 
 # ------------------------ The glossy set's settings -----------------------

@@ -126,7 +126,8 @@ def _settings(q, colours: dict) -> str:
         return text + glossy + "</p>"
     return (text + " Each candidate is scored by the relative squared error a pixel of "
             f"{st.spp} spp gets on known integrals (the environment map about the normals "
-            "the camera sees); the least error wins where it beats the safe candidate "
+            "the camera sees, as the source says); the least error wins where it beats "
+            "the safe candidate "
             "(largest σ_n²/σ² and ℓ: nearly equal weights) by more than two standard "
             "errors (the chart below)." + glossy + "</p>" + charts.settings_curve(q))
 
