@@ -5,6 +5,7 @@ pixel."""
 from __future__ import annotations
 
 import warnings
+from typing import NamedTuple
 
 import drjit as dr
 import mitsuba as mi
@@ -31,8 +32,9 @@ PRIOR_MEANS = ("constant", "zero")
 #
 # Glossy lobes: a second set of N_b = ⌊N/2⌋ nodes about the mirror direction
 # r, mapped by a Phong lobe cosⁿ α whose n is read off the BSDF (its glossy
-# density at r is (n + 1)/(2π) for a Phong lobe), rounded down to a power of
-# two so that its weights are tabulated like the diffuse set's. The two sets
+# density at r is (n + 1)/(2π) for a Phong lobe), rounded to the nearest of
+# gp_settings.EXPONENTS so that its weights are tabulated like the diffuse
+# set's. The two sets
 # split the integral, not the samples: the lobe set integrates f_glossy cos L
 # where r·ω > 0 against p_n, the diffuse set everything else against cos θ/π.
 
@@ -64,6 +66,19 @@ def lobe_index(exponent):
 #: lobe (a numpy study, 8 and 32 nodes) they gave 0.22-0.57× the squared
 #: error of equal weights.
 LOBE_LENGTH_SCALE, LOBE_NOISE = 1.0, 1e-3
+
+
+class SplitSettings(NamedTuple):
+    """The settings of a glossy point's two sets: the diffuse set's (for its
+    N − N_b nodes) and the lobe set's (ℓ in lobe widths)."""
+
+    length_scale: float
+    noise: float
+    mapping: str
+    calibration: float
+    lobe_length_scale: float
+    lobe_noise: float
+    lobe_calibration: float
 
 
 # ------------------------------ Plugin ----------------------------------
@@ -238,13 +253,11 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
         #: gp_settings.Choice) where they were chosen by them.
         self.source, self.choice = "given", None
         #: Directions of the lobe set at a glossy shading point (0: none, the
-        #: diffuse set then integrates the lobe too), and whether the scene
-        #: last checked has a glossy lobe (its weights are tabulated then).
+        #: diffuse set then integrates the lobe too).
         self.lobe_directions = self.directions // 2 if self.directions >= 4 else 0
-        self.glossy = False
-        #: The settings of a glossy point's two sets (diffuse ℓ, noise, mapping, κ;
-        #: lobe ℓ in lobe widths, noise, κ), the lobe's gp_settings.Choice and the
-        #: exponent it was scored at, once a scene with glossy lobes is checked.
+        #: The SplitSettings in use where the scene last checked has glossy
+        #: lobes (None: it has none, no tables for them), the lobe's
+        #: gp_settings.Choice and the exponent it was scored at.
         self.split, self.lobe_choice, self.lobe_exponent = None, None, None
         self._use(float(ell) if isinstance(ell, (int, float)) else DEFAULT_LENGTH_SCALE,
                   noise if noise != "auto" else DEFAULT_NOISE,
@@ -285,7 +298,7 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
         self.source = how if self.chooses else "given"
         # (the diffuse set of a glossy point has N − N_b nodes: its own choice;
         # the lobe set's ℓ, in lobe widths, and noise are chosen on held-out lobes)
-        self.split, self.lobe_choice = None, None
+        split, self.lobe_choice = None, None
         if glossy:
             diffuse = settings(self.directions - self.lobe_directions)[2]
             self.lobe_choice, scored_at = choose_lobe_settings(
@@ -294,8 +307,8 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
             c = self.lobe_choice
             lobe = (LOBE_LENGTH_SCALE, LOBE_NOISE, diffuse[3]) if c is None else (
                 c.length_scale / gp_settings.lobe_width(scored_at), c.noise, c.calibration)
-            self.split = diffuse + lobe
-        self._use(*chosen, split=self.split)
+            split = SplitSettings(*diffuse, *lobe)
+        self._use(*chosen, split=split)
 
     def chosen_settings(self, scene, spp: int) -> dict:
         self._spp = spp
@@ -303,32 +316,34 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
         rows = [] if self.choice is None or len(self.choice.candidates) < 2 else [
             {"mapping": c.mapping, "noise": c.noise, "length_scale": c.length_scale,
              "relmse": c.relmse} for c in self.choice.candidates]
-        glossy = None
-        if self.split is not None:
-            mapping, noise, ell, lobe_ell, lobe_noise, lobe_kappa = (
-                self.split[2], self.split[1], self.split[0], *self.split[4:])
-            glossy = {"lobe_directions": self.lobe_directions, "diffuse_mapping": mapping,
-                      "diffuse_noise": noise, "diffuse_length_scale": ell,
-                      "lobe_length_scale": lobe_ell, "lobe_noise": lobe_noise,
-                      "lobe_calibration": lobe_kappa, "lobe_exponent": self.lobe_exponent}
+        glossy, s = None, self.split
+        if s is not None:
+            glossy = {"lobe_directions": self.lobe_directions, "diffuse_mapping": s.mapping,
+                      "diffuse_noise": s.noise, "diffuse_length_scale": s.length_scale,
+                      "lobe_length_scale": s.lobe_length_scale, "lobe_noise": s.lobe_noise,
+                      "lobe_calibration": s.lobe_calibration,
+                      "lobe_exponent": self.lobe_exponent}
         return {"source": self.source, "mapping": self.mapping, "noise": self.noise,
                 "length_scale": self.length_scale, "spp": int(spp),
                 "calibration": self.calibration, "candidates": rows, "glossy": glossy}
 
     def _use(self, length_scale: float, noise: float, mapping: str,
-             calibration: float = 1.0, split: tuple | None = None) -> None:
+             calibration: float = 1.0, split: SplitSettings | None = None) -> None:
         """Take these settings and their weights (cached per setting), the
-        posterior variance scaled by ``calibration``. With ``split`` (the
-        same four settings for the diffuse set of a glossy point), the
+        posterior variance scaled by ``calibration``. With ``split``, the
         weights of both sets at glossy shading points too."""
         now = (length_scale, noise, mapping, calibration, split)
         if now == tuple(getattr(self, k, None) for k in ("length_scale", "noise", "mapping",
-                                                          "calibration", "_split_used")):
+                                                          "calibration", "split")):
             return
         self.length_scale, self.noise, self.mapping = float(length_scale), float(noise), mapping
-        self.calibration, self._split_used = float(calibration), split
-        self.glossy = split is not None
+        self.calibration, self.split = float(calibration), split
         self._use_table()
+
+    @property
+    def glossy(self) -> bool:
+        """Whether glossy points get two sets (the scene checked has glossy lobes)."""
+        return self.split is not None
 
     def _use_table(self):
         n, n_b = self.directions, self.lobe_directions
@@ -341,16 +356,16 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
             self._a, self._c, self._d = self._flat(self.tables, self.calibration)
             if self.glossy:
                 # the diffuse set of a glossy point, and the lobe set per exponent
-                ell, noise, mapping, kappa, lobe_ell, lobe_noise, lobe_kappa = self._split_used
-                self.split_tables = gp_settings.set_weights(n - n_b, ell, noise,
-                                                            self.prior_mean, mapping, self.sets)
+                s = self.split
+                self.split_tables = gp_settings.set_weights(
+                    n - n_b, s.length_scale, s.noise, self.prior_mean, s.mapping, self.sets)
                 # (ℓ in lobe widths: the same relative kernel at every exponent)
                 self.lobe_tables = [
                     t for e in EXPONENTS for t in gp_settings.set_weights(
-                        n_b, lobe_ell * gp_settings.lobe_width(e), lobe_noise,
+                        n_b, s.lobe_length_scale * gp_settings.lobe_width(e), s.lobe_noise,
                         self.prior_mean, "lobe", self.sets, e)]
-                self._a2, self._c2, self._d2 = self._flat(self.split_tables, kappa)
-                self._b, self._cb, self._db = self._flat(self.lobe_tables, lobe_kappa)
+                self._a2, self._c2, self._d2 = self._flat(self.split_tables, s.calibration)
+                self._b, self._cb, self._db = self._flat(self.lobe_tables, s.lobe_calibration)
 
     def _flat(self, tables, calibration: float):
         """(weights, error factors × ``calibration``, amplitude divisors) of
@@ -413,8 +428,7 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
         # mapped as its weights were computed (the split's mapping at a glossy point)
         shift = ((mi.Float(which) + 0.5) / self.sets - 0.5) / mi.Float(n_a)
         u = fibonacci_point(j, n_a, mi.Point2f(shift, turn))
-        split_mapping = self._split_used[2]
-        w_up = dr.select(lobe, MAPPINGS[split_mapping][0](u), MAPPINGS[self.mapping][0](u))
+        w_up = dr.select(lobe, MAPPINGS[self.split.mapping][0](u), MAPPINGS[self.mapping][0](u))
         wo_a = mi.Vector3f(w_up.x, w_up.y, dr.mulsign(w_up.z, si.wi.z))
         # Lobe set: (n + 1)/(2π) cosⁿ α about the mirror direction r
         n_q = dr.exp2(mi.Float(q) / STEPS_PER_OCTAVE)
@@ -439,9 +453,7 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
                          active & dr.select(in_a, False, True))
         return wo, factor, dr.select(in_a, a, b)
 
-    @property
-    def second_set_sums(self):
-        return self.glossy
+    second_set_sums = glossy         # (a glossy point keeps each set's sums apart)
 
     def finish(self, total, s1, s2, y0, drawn, active):
         which = drawn[1]

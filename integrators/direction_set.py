@@ -190,16 +190,15 @@ class DirectionSetEstimator(IlluminationEstimator):
                 if emitter_j != None:
                     Y = factor * emitter_j.eval(si_j, shade)
                 total += a * Y
+                y0 = dr.select(j == 0, Y, y0)
                 if dr.hint(self.second_set_sums, mode='scalar'):
                     in_first = j < second
-                    y0 = dr.select(j == 0, Y, y0)
                     z0 = dr.select(j == second, Y, z0)
                     s1 += dr.select(in_first, Y - y0, 0.0)
                     s2 += dr.select(in_first, dr.square(Y - y0), 0.0)
                     t1 += dr.select(in_first, 0.0, Y - z0)
                     t2 += dr.select(in_first, 0.0, dr.square(Y - z0))
                 else:
-                    y0 = dr.select(j == 0, Y, y0)
                     s1 += Y - y0
                     s2 += dr.square(Y - y0)
                 j += 1
