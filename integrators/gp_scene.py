@@ -104,38 +104,53 @@ def held_out_surface(scene, m: int = HELD_OUT_NORMALS):
     """(normals, origins) of :func:`held_out_normals`: the origins (M, 3) are
     the surface points, moved off the surface along the normal, that the
     held-out rays leave from (None with the Fibonacci sphere)."""
+    n, d, p = _film_hits(scene, m, (3, 3, 3),
+                         lambda si, ray: (si.is_valid(), si.sh_frame.n, ray.d, si.p))
+    if len(n) < max(1, m // 8):
+        return sphere_directions(m), None
+    n = n * np.where(np.sum(n * d, axis=1) > 0, -1.0, 1.0)[:, None]
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    return n, off_surface(p, n)
+
+
+def _film_hits(scene, m: int, dims: tuple, probe) -> list[np.ndarray]:
+    """What ``probe(si, ray)`` reads at the surfaces the first sensor sees
+    through a 4√m × 4√m grid of film positions. It returns (mask, values...),
+    each value of ``dims`` components (3 or 1); the rows where the mask
+    holds, at most m evenly spaced in the grid's order, come back as one
+    array per value, (M, 3) or (M,). Scalar variants trace one ray at a
+    time and probe only valid hits (an invalid one has no BSDF to ask)."""
     side = 4 * int(round(m ** 0.5))
     g = (np.arange(side) + 0.5) / side
     x, y = [a.ravel() for a in np.meshgrid(g, g)]
     sensor = scene.sensors()[0]
-    found = []
-    if dr.is_jit_v(mi.Float):
-        ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(x, y), mi.Point2f(0.5, 0.5))
-        si = scene.ray_intersect(ray)
+
+    def column(value, dim, count):
         # (a value the same for every ray, as an orthographic camera's
         # direction, comes back as one entry)
-        n = np.broadcast_to(np.array(si.sh_frame.n, dtype=float).T, (len(x), 3))
-        d = np.broadcast_to(np.array(ray.d, dtype=float).T, (len(x), 3))
-        p = np.broadcast_to(np.array(si.p, dtype=float).T, (len(x), 3))
-        hit = np.broadcast_to(np.array(si.is_valid(), dtype=bool), (len(x),))
-        found = [(a, b, c) for a, b, c, h in zip(n, d, p, hit) if h]
+        a = np.array(value, dtype=float).reshape(dim, -1).T
+        return np.broadcast_to(a, (count, dim))
+
+    if dr.is_jit_v(mi.Float):
+        ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(x, y), mi.Point2f(0.5, 0.5))
+        mask, *values = probe(scene.ray_intersect(ray), ray)
+        keep = np.broadcast_to(np.array(mask, dtype=bool).reshape(-1), (len(x),))
+        found = [column(v, dim, len(x))[keep] for v, dim in zip(values, dims)]
     else:
+        rows = []
         for px, py in zip(x, y):
             ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(px, py), mi.Point2f(0.5, 0.5))
             si = scene.ray_intersect(ray)
             if si.is_valid():
-                found.append((np.array(si.sh_frame.n, dtype=float).ravel(),
-                              np.array(ray.d, dtype=float).ravel(),
-                              np.array(si.p, dtype=float).ravel()))
-    if len(found) < max(1, m // 8):
-        return sphere_directions(m), None
-    if len(found) > m:
-        found = [found[i] for i in np.linspace(0, len(found) - 1, m).round().astype(int)]
-    n = np.array([a for a, _, _ in found])
-    d = np.array([b for _, b, _ in found])
-    n *= np.where(np.sum(n * d, axis=1) > 0, -1.0, 1.0)[:, None]
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
-    return n, off_surface(np.array([c for _, _, c in found]), n)
+                mask, *values = probe(si, ray)
+                if mask:
+                    rows.append([column(v, dim, 1) for v, dim in zip(values, dims)])
+        found = [np.concatenate([r[i] for r in rows]) if rows else np.zeros((0, dim))
+                 for i, dim in enumerate(dims)]
+    if len(found[0]) > m:
+        pick = np.linspace(0, len(found[0]) - 1, m).round().astype(int)
+        found = [f[pick] for f in found]
+    return [f if dim == 3 else f[:, 0] for f, dim in zip(found, dims)]
 
 
 def off_surface(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -300,47 +315,19 @@ def held_out_lobes(scene, m: int = HELD_OUT_NORMALS):
     shading normal, the exponent of the Phong lobe of the same density
     there, 2π·p_glossy(r) − 1, and the point held-out rays leave from
     (off_surface). Empty arrays where no glossy surface is seen."""
-    side = 4 * int(round(m ** 0.5))
-    g = (np.arange(side) + 0.5) / side
-    x, y = [a.ravel() for a in np.meshgrid(g, g)]
-    sensor = scene.sensors()[0]
     ctx = mi.BSDFContext()
     ctx.type_mask = +mi.BSDFFlags.Glossy
 
-    def lobe_at(px, py):
-        ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(px, py), mi.Point2f(0.5, 0.5))
-        si = scene.ray_intersect(ray)
-        if not dr.is_jit_v(mi.Float) and not si.is_valid():
-            return None, None, False                   # (scalar: no BSDF to ask)
+    def lobe_at(si, ray):
         bsdf = si.bsdf(ray)
         r = mi.reflect(si.wi)
         peak = bsdf.pdf(ctx, si, r, si.is_valid())
         ok = si.is_valid() & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Glossy) & (peak > 0)
         # (the side the camera sees: the normal turned towards it)
         n = si.to_world(mi.Vector3f(0, 0, dr.sign(si.wi.z)))
-        return si.to_world(r), dr.two_pi * peak - 1.0, ok, si.p, n
+        return ok, si.to_world(r), dr.two_pi * peak - 1.0, si.p, n
 
-    def rows(value, count):
-        a = np.array(value, dtype=float)
-        return np.broadcast_to(a.T if a.ndim == 2 else a, (count, 3) if a.ndim == 2 else (count,))
-
-    if dr.is_jit_v(mi.Float):
-        r, n, ok, p, nrm = lobe_at(x, y)
-        count = len(x)
-        found = [row for *row, h in zip(rows(r, count), rows(n, count), rows(p, count),
-                                        rows(nrm, count), rows(ok, count)) if h]
-    else:
-        found = []
-        for px, py in zip(x, y):
-            r, n, ok, p, nrm = lobe_at(px, py)
-            if ok:
-                found.append([np.array(v, dtype=float).ravel() for v in (r, n, p, nrm)])
-    if len(found) > m:
-        found = [found[i] for i in np.linspace(0, len(found) - 1, m).round().astype(int)]
-    axes = np.array([f[0] for f in found], dtype=float).reshape(-1, 3)
-    exponents = np.array([float(np.ravel(f[1])[0]) for f in found], dtype=float)
-    points = np.array([f[2] for f in found], dtype=float).reshape(-1, 3)
-    normals = np.array([f[3] for f in found], dtype=float).reshape(-1, 3)
+    axes, exponents, points, normals = _film_hits(scene, m, (3, 1, 3, 3), lobe_at)
     return axes / np.linalg.norm(axes, axis=1, keepdims=True), exponents, \
         off_surface(points, normals)
 
@@ -353,9 +340,7 @@ def held_out_lobe_truth(env, axes: np.ndarray, exponent: float,
     as in :func:`held_out_truth` (1 without ``origins``)."""
     u, v = gp_quadrature.fibonacci_square(samples, 0.0)
     local = gp_quadrature.lobe_directions(u, np.mod(v + 0.5 / samples, 1.0), exponent)
-    s, t = gp_settings.tangent_frames(axes)
-    world = (local[None, :, :1] * s[:, None] + local[None, :, 1:2] * t[:, None]
-             + local[None, :, 2:] * axes[:, None])
+    world = gp_settings.to_frames(local[None], axes)
     values = environment_values(env, world.reshape(-1, 3))
     if origins is not None:
         values = values * unoccluded(scene, np.repeat(origins, samples, axis=0),

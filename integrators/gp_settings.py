@@ -101,9 +101,17 @@ def held_out_directions(normals: np.ndarray, n: int, mapping: str, sets: int,
     v = np.mod(np.arange(n) / GOLDEN + turn[..., None], 1.0)
     u = np.broadcast_to(u, (m, len(k), n))
     local = lobe_directions(u, v, exponent) if mapping == "lobe" else MAPPINGS[mapping](u, v)
-    s, t = tangent_frames(normals)
-    return (local[..., :1] * s[:, None, None] + local[..., 1:2] * t[:, None, None]
-            + local[..., 2:] * np.asarray(normals, np.float64)[:, None, None])
+    return to_frames(local, normals)
+
+
+def to_frames(local: np.ndarray, axes: np.ndarray) -> np.ndarray:
+    """Directions given about +z turned into the frame of each of M unit
+    ``axes`` (:func:`tangent_frames`): ``local`` (M or 1, ..., 3) → (M, ..., 3)."""
+    axes = np.asarray(axes, np.float64)
+    s, t = tangent_frames(axes)
+    shape = (len(axes),) + (1,) * (local.ndim - 2) + (3,)
+    return (local[..., :1] * s.reshape(shape) + local[..., 1:2] * t.reshape(shape)
+            + local[..., 2:] * axes.reshape(shape))
 
 
 def held_out_errors(values: np.ndarray, truth: np.ndarray, a: np.ndarray,

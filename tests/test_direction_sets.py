@@ -458,6 +458,24 @@ def test_held_out_truth_is_the_map_integrated_about_each_normal(llvm):
     np.testing.assert_allclose(bh.held_out_truth(env, normals), brute, rtol=5e-3)
 
 
+def test_held_out_lobes_are_the_same_in_scalar_and_llvm(use_variant):
+    """probe_spheres, where some film rays miss every surface: scalar_rgb
+    finds the same held-out lobes as llvm_ad_rgb (axes, exponents, origins;
+    float32 round-off apart). The first version's scalar branch failed to
+    unpack a missed ray's result."""
+    from mcillum.integrators import gp_scene
+    got = {}
+    for variant in ("llvm_ad_rgb", "scalar_rgb"):
+        use_variant(variant)
+        scene = renders.load_scene(scenes.path("probe_spheres"), res=4, max_depth=2)
+        got[variant] = gp_scene.held_out_lobes(scene)
+    (axes, exponents, origins), (axes_s, exponents_s, origins_s) = got.values()
+    assert len(axes) == 64 and axes.shape == axes_s.shape
+    np.testing.assert_allclose(axes_s, axes, atol=1e-4)
+    np.testing.assert_allclose(exponents_s, exponents, rtol=1e-3)
+    np.testing.assert_allclose(origins_s, origins, atol=1e-4)
+
+
 def test_held_out_integrals_see_what_occludes_them(llvm):
     """The known answers count only light that reaches the surface: under a
     sphere of radius 1 whose centre is 2 above a floor point, a cone of
