@@ -161,16 +161,19 @@ def off_surface(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
     return points + scale * normals
 
 
-def unoccluded(scene, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
-    """Whether rays from ``origins`` along ``directions`` (each (k, 3)) leave
-    the scene, i.e. see the environment: (k,) bool. Scalar variants do not
-    trace them (a Python call per ray): all True."""
-    k = len(directions)
-    if not dr.is_jit_v(mi.Float) or k == 0:
-        return np.ones(k, dtype=bool)
-    o, d = origins.astype(np.float32), directions.astype(np.float32)
+def unoccluded(scene, origins: np.ndarray | None, directions: np.ndarray) -> np.ndarray:
+    """Whether the rays from each of M ``origins`` (M, 3) along its
+    ``directions`` (M, ..., 3) leave the scene, i.e. see the environment:
+    bool, ``directions.shape[:-1]``. All True without ``origins`` (nothing
+    occludes: the map alone) and in scalar variants, which do not trace
+    them (a Python call per ray)."""
+    shape = directions.shape[:-1]
+    if origins is None or not dr.is_jit_v(mi.Float) or directions.size == 0:
+        return np.ones(shape, dtype=bool)
+    o = np.repeat(origins, int(np.prod(shape[1:])), axis=0).astype(np.float32)
+    d = directions.reshape(-1, 3).astype(np.float32)
     ray = mi.Ray3f(mi.Point3f(o[:, 0], o[:, 1], o[:, 2]), mi.Vector3f(d[:, 0], d[:, 1], d[:, 2]))
-    return ~np.broadcast_to(np.array(scene.ray_test(ray), dtype=bool), (k,))
+    return ~np.broadcast_to(np.array(scene.ray_test(ray), dtype=bool), (len(d),)).reshape(shape)
 
 
 def held_out_truth(env, normals: np.ndarray, samples: int = TRUTH_SAMPLES,
@@ -199,10 +202,7 @@ def held_out_truth(env, normals: np.ndarray, samples: int = TRUTH_SAMPLES,
         d, w = np.array(d), np.array(w)
     w = w.reshape(samples, -1).mean(axis=1)
     cos = np.maximum(normals @ d.T, 0.0)
-    if origins is not None:
-        m = len(normals)
-        cos *= unoccluded(scene, np.repeat(origins, samples, axis=0),
-                          np.tile(d, (m, 1))).reshape(m, samples)
+    cos *= unoccluded(scene, origins, np.broadcast_to(d, (len(normals),) + d.shape))
     return cos @ w / (np.pi * samples)
 
 
@@ -215,12 +215,8 @@ def held_out_values(env, normals: np.ndarray, n: int, mapping: str, sets: int,
     (with ``origins``; else the map alone)."""
     turns = max(4, -(-HELD_OUT_SAMPLES // sets))
     world = gp_settings.held_out_directions(normals, n, mapping, sets, turns, exponent)
-    values = environment_values(env, world.reshape(-1, 3))
-    if origins is not None:
-        per = world.shape[1] * world.shape[2]
-        values = values * unoccluded(scene, np.repeat(origins, per, axis=0),
-                                     world.reshape(-1, 3))
-    return values.reshape(world.shape[:-1])
+    values = environment_values(env, world.reshape(-1, 3)).reshape(world.shape[:-1])
+    return values * unoccluded(scene, origins, world)
 
 
 #: (map fingerprint, N, fixed settings) → gp_settings.Choice
@@ -341,11 +337,8 @@ def held_out_lobe_truth(env, axes: np.ndarray, exponent: float,
     u, v = gp_quadrature.fibonacci_square(samples, 0.0)
     local = gp_quadrature.lobe_directions(u, np.mod(v + 0.5 / samples, 1.0), exponent)
     world = gp_settings.to_frames(local[None], axes)
-    values = environment_values(env, world.reshape(-1, 3))
-    if origins is not None:
-        values = values * unoccluded(scene, np.repeat(origins, samples, axis=0),
-                                     world.reshape(-1, 3))
-    return values.reshape(len(axes), samples).mean(axis=1)
+    values = environment_values(env, world.reshape(-1, 3)).reshape(len(axes), samples)
+    return (values * unoccluded(scene, origins, world)).mean(axis=1)
 
 
 #: (view fingerprint, N_b, exponent, prior mean, sets, spp) → (Choice, exponent)

@@ -483,6 +483,7 @@ def test_held_out_integrals_see_what_occludes_them(llvm):
     hemisphere, so a constant map of radiance 1 gives 0.75 there (1 without
     the scene); the node values are 0 exactly where a ray hits the sphere."""
     from mcillum.integrators import gp_scene as bh
+    from mcillum.integrators import gp_settings
     scene = mi.load_dict({"type": "scene", "sky": {"type": "constant"},
                           "ball": {"type": "sphere", "center": [0, 0, 2], "radius": 1.0}})
     env, up = scene.environment(), np.array([[0.0, 0.0, 1.0]])
@@ -491,7 +492,6 @@ def test_held_out_integrals_see_what_occludes_them(llvm):
     assert bh.held_out_truth(env, up, scene=scene, origins=origin)[0] == \
         pytest.approx(0.75, rel=5e-3)
     values = bh.held_out_values(env, up, 64, "cosine", 1, scene, origin)
-    from mcillum.integrators import gp_settings
     d = gp_settings.held_out_directions(up, 64, "cosine", 1, 64)
     blocked = d[..., 2] > np.cos(np.pi / 6)
     assert blocked.any() and (values[blocked] == 0).all() and (values[~blocked] == 1).all()
