@@ -405,13 +405,14 @@ def test_cache_survives_a_killed_run(llvm, tmp_path):
 
 # ------------------------- The speed stage, twice ---------------------------
 
-def _speed_stage(tmp_path, out: str, estimators=None, scene="cornell_box"):
+def _speed_stage(tmp_path, out: str, estimators=None, scene="cornell_box", renders=4):
     """The speed-and-images stage alone on ``scene`` at 128² into ``out``
-    (the reference cached under tmp_path)."""
+    (the reference cached under tmp_path), ``renders`` timed renders per
+    estimator and budget."""
     from mcillum.validation import pipeline
     profile = profiles.Profile(name="quick", runs=(), reference_max_seconds=30.0)
     plan = profiles.SceneRun(scene=scene, res=8, ladder=(4,), renders=2,
-                             display=profiles.Display(res=128))
+                             display=profiles.Display(res=128, renders=renders))
     ctx = Context(Run(profile, "llvm_ad_rgb", str(tmp_path / "cache"), str(tmp_path / out)),
                   plan, scene, list(estimators or profile.estimator_names()))
     common.load(ctx)
@@ -464,17 +465,22 @@ def test_an_efficiency_whose_truth_is_known_is_read_right(llvm, tmp_path):
     plugin file: at spp s its time is twice path's, fixed cost included, so
     at equal time its efficiency is half of path's at its own spp: 0.5 ·
     (a/s_path + b)/(a/s_twice + b) with path's cost model (a, b). The speed
-    stage reads it within 5 %, and its interval covers it."""
+    stage reads it within 15 % (its own timing noise: one slow render in 8
+    moves it by 5 %, docs/measurements.md 2026-12-03), its interval covers
+    it, and the interval tells it apart from the readings a mistake in the
+    timing would give: the thrown render not counted (2×) or counted twice
+    (½×)."""
     from mcillum import plugins
     from user_code import TWICE_PATH
     plugin = tmp_path / "code" / "twice_path.py"
     plugin.parent.mkdir()
     plugin.write_text(TWICE_PATH)
     plugins.load(str(plugin), "llvm_ad_rgb")
-    speed = _speed_stage(tmp_path, "out", ["twice_path", "path"])
+    speed = _speed_stage(tmp_path, "out", ["twice_path", "path"], renders=8)
     path, top = speed.cost_model["path"], speed.budgets[-1].estimators
     a, b = path.fixed_s, path.per_spp_s
     truth = 0.5 * (a / top["path"].spp + b) / (a / top["twice_path"].spp + b)
     got = speed.efficiency_vs_path["twice_path"]
-    assert abs(got.ratio / truth - 1) <= 0.05, (got, truth)
+    assert abs(got.ratio / truth - 1) <= 0.15, (got, truth)
     assert got.ci.low <= truth <= got.ci.high, (got, truth)
+    assert truth / 1.5 < got.ci.low and got.ci.high < 1.5 * truth, (got, truth)
