@@ -9,8 +9,8 @@ the estimator is unbiased. Rendering is linear in the map, so
 
 and an estimator that agrees with the reference on the sunless map and
 misses only a sun it is expected to hit only a few times is limited by its
-sample count, not biased (the failures group of ``mcillum validate`` uses this:
-validation/stages/cases.py, ``split_sun``).
+sample count, not biased (``mcillum validate`` uses this in its failure cases and
+scene comparisons: validation/stages/sun_split.py).
 
 "Sun" texels: luminance above ``SUN_FACTOR`` × the map's solid-angle-weighted
 mean luminance. They are set to zero in the sunless map.

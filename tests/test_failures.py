@@ -21,6 +21,7 @@ from mcillum.validation import pipeline
 from mcillum.validation.plan import profiles, seeds
 from mcillum.validation.run import renders
 from mcillum.validation.stats import statistics, tails
+from mcillum.validation.checks import sun as sun_rules
 from mcillum.validation.checks.evidence import FAILING, HEAVY
 from mcillum.validation.stages.context import Run
 
@@ -137,23 +138,36 @@ def test_the_widened_sun_decides_what_the_real_sun_left_open(widened, verdict):
 
 def test_a_partly_hidden_source_excuses_dark_pixels_not_a_dark_image():
     """On the widened sun's map a pixel that sees the disc through a sliver
-    is darker until its hits arrive: a fail resting on such pixels renders
-    on; one whose image mean is darker stays a fail; brighter pixels count."""
+    is darker until its hits arrive: a fail or an inconclusive resting only
+    on such pixels leaves the image mean to decide (a pass, which the
+    sequential test then holds to ±ε); one whose image mean is darker stays
+    a fail, or undecided where a tail excused it; brighter pixels count."""
     from types import SimpleNamespace
 
     from mcillum.validation.checks import evidence
 
-    c = SimpleNamespace(pixel_t=np.array([[-9.0, 0.5], [0.2, 0.1]]))
+    def comparison(pooled_p=0.5, up_p=0.5):
+        return SimpleNamespace(pixel_t=np.array([[-9.0, 0.5], [0.2, 0.1]]),
+                               pixel_p=np.array([[1e-9, up_p], [0.5, 0.5]]), alpha_pixel=1e-6,
+                               pooled_p=np.array([pooled_p, 0.5, 0.5]), alpha_pooled=1e-3)
     dark = np.array([[True, False], [False, False]])
 
-    def fail(pooled=False, up=False):
-        return evidence.Decision(outcome="fail", reason="darker at 1 px", pixels=dark.copy(),
-                                 pooled=np.array([pooled, False, False]), counted_up=up)
+    def decided(outcome="fail", pooled=False, up=False):
+        return evidence.Decision(outcome=outcome, reason="darker at 1 px", pixels=dark.copy(),
+                                 pooled=np.array([pooled, False, False]), counted_up=up,
+                                 samples_needed=1e6 if outcome == "inconclusive" else None)
 
-    d = evidence.partly_hidden(fail(), c)
-    assert d.outcome == "inconclusive" and not d.pixels.any() and "sliver" in d.reason
-    assert evidence.partly_hidden(fail(pooled=True), c).outcome == "fail"
-    assert evidence.partly_hidden(fail(up=True), c).outcome == "fail"
+    c = comparison()
+    for outcome in ("fail", "inconclusive"):
+        d = sun_rules.partly_hidden(decided(outcome), c)
+        assert d.outcome == "pass" and not d.pixels.any() and d.samples_needed is None
+    excused = comparison(pooled_p=1e-5)         # a darker image mean a tail excused
+    assert sun_rules.partly_hidden(decided(), excused).outcome == "inconclusive"
+    assert sun_rules.partly_hidden(decided("inconclusive"), excused).outcome == "inconclusive"
+    assert sun_rules.partly_hidden(decided(pooled=True), excused).outcome == "fail"
+    assert sun_rules.partly_hidden(decided(up=True), comparison(up_p=1e-9)).outcome == "fail"
+    brighter = comparison(up_p=1e-9)            # an upward pixel a tail excused
+    assert sun_rules.partly_hidden(decided("inconclusive"), brighter).outcome == "inconclusive"
 
 
 # ---------------------------- Verdicts on cases -------------------------------

@@ -16,7 +16,7 @@ from mcillum.integrators.scene_checks import KINDS
 from mcillum.validation import pipeline, results
 from mcillum.validation.plan import profiles, scenes
 from mcillum.validation.report import charts
-from mcillum.validation.stages import cases
+from mcillum.validation.stages import sun_split
 
 import conftest
 import twins
@@ -106,7 +106,7 @@ def test_a_new_estimator_appears_everywhere_without_other_edits(throwaway):
     assert registry.facts(throwaway).renders(contains)
     assert not registry.facts("cosine_hemisphere").renders(contains)
     # failures group: its bound on direct sun hits, N·Ω·max p
-    assert cases.expected_sun_hits(throwaway, 1000, 0.01) == pytest.approx(1000 * 0.01 * 0.25)
+    assert sun_split.expected_sun_hits(throwaway, 1000, 0.01) == pytest.approx(1000 * 0.01 * 0.25)
     # results and report: the run records its facts, the charts take its colour
     facts = pipeline.estimator_facts([throwaway, "path"])
     assert facts[throwaway].colour == "#123456"

@@ -9,9 +9,12 @@ below), then the checks decide (:mod:`.checks`):
                        quadrature (estimators of N directions: equal rays, bias
                        against N, calibration) → learning (estimators that
                        learn their pdf, where the plan asks: error against
-                       training passes) → release the scene → images;
-                       checks; then the speed-and-images stage at the display
-                       resolution (stages/speed.py): cost model → equal-time
+                       training passes) → release the scene → images → on
+                       a map with a sun ($envmap), for the estimators it
+                       left inconclusive, the sun split as a failure case's
+                       below, at the ladder's top rung; checks; then the
+                       speed-and-images stage at the display resolution
+                       (stages/speed.py): cost model → equal-time
                        renders → reference → relMSE, efficiency, ranking, FLIP
                        → images
     failure case       load → refusals → K seeds → reference → tail numbers →
@@ -52,7 +55,7 @@ from .plan import profiles, scenes, seeds, user_scenes
 from .results import layout
 from .run import executors, renders
 from .run.progress import Progress
-from .stages import cases, common, learning, quadrature, scene, speed
+from .stages import cases, common, learning, quadrature, scene, speed, sun_split
 from .stages.context import Context, Run
 from .stats import metrics, statistics
 
@@ -62,11 +65,13 @@ SCENE = (common.load, common.choose_estimators, scene.render_ladder, common.buil
 SPEED = (speed.display, speed.time_costs, speed.render_budgets, speed.display_reference,
          speed.release_display, speed.measure_speed, speed.save_display)
 CASE = (common.load, cases.probe_refusals, cases.render_seeds, common.build_reference,
-        cases.tail_numbers, cases.test_bias, common.release, cases.sunless_twin)
-#: The sunless twin of a heavy-tail case (its own context: ``ctx.sunless``),
-#: and its widened twin (``ctx.widened``), whose reference reaches the budget.
+        cases.tail_numbers, cases.test_bias, common.release, sun_split.sunless_twin)
+#: The sunless twin of a heavy-tail case or of a scene comparison on a map
+#: with a sun (its own context: ``ctx.sunless``), and its widened twin
+#: (``ctx.widened``), whose reference reaches the budget (stages/sun_split.py).
 SUNLESS = (common.load, common.choose_estimators, cases.render_seeds, common.build_reference)
-WIDENED = (common.load, common.choose_estimators, cases.render_seeds, cases.widened_reference)
+WIDENED = (common.load, common.choose_estimators, cases.render_seeds,
+           sun_split.widened_reference)
 SWEEP_POINT = (common.load, common.choose_estimators, cases.render_seeds,
                common.build_reference, cases.tail_numbers, common.release)
 
@@ -86,6 +91,8 @@ def compare_scene(run: Run, plan: profiles.SceneRun, estimators, speed_stage: bo
                   label=plan.id)
     ctx.scene_notes += notes
     run_stages(SCENE, ctx)
+    sun_split.sunless_twin(ctx)
+    split_the_sun(ctx)
     ctx.checks = scene_checks.judge(ctx.id, ctx.measured, ctx.evidence, ctx.quadrature)
     if speed_stage and plan.display is not None and registry.REFERENCE in ctx.integrators:
         run_stages(SPEED, ctx)
@@ -106,19 +113,26 @@ def failure_case(run: Run, plan: profiles.FailureCase,
         ctx.checks = case_checks.judge_sweep(ctx.id, ctx.sweep_rows, cases.sweep_record(plan))
         return cases.case_result(ctx), ctx.checks
     run_stages(CASE, ctx)
-    if ctx.sunless is not None:
-        run_stages(SUNLESS, ctx.sunless)
-        cases.split_sun(ctx)
-        common.release(ctx.sunless)
-        cases.widened_twin(ctx)
-    if ctx.widened is not None:
-        run_stages(WIDENED, ctx.widened)
-        cases.split_widened(ctx)
-        common.release(ctx.widened)
+    split_the_sun(ctx)
     pixels = int(np.prod(ctx.reference.mean.shape[:2]))
     ctx.checks = case_checks.judge(ctx.id, ctx.rows, ctx.info.contains, pixels)
     cases.save_evidence(ctx)
     return cases.case_result(ctx), ctx.checks
+
+
+def split_the_sun(ctx: Context) -> None:
+    """What the real sun left undecided, tested on the map without it and
+    with it widened, where ``sun_split.sunless_twin`` made the twin
+    (stages/sun_split.py); each twin's scene let go after its test."""
+    if ctx.sunless is not None:
+        run_stages(SUNLESS, ctx.sunless)
+        sun_split.split_sun(ctx)
+        common.release(ctx.sunless)
+        sun_split.widened_twin(ctx)
+    if ctx.widened is not None:
+        run_stages(WIDENED, ctx.widened)
+        sun_split.split_widened(ctx)
+        common.release(ctx.widened)
 
 
 def at_depth(estimators, plan) -> list[str]:

@@ -6,10 +6,8 @@ test (stats/statistics.py) means, and what a pass must show (the image
 mean unbiased within ±ε); the stages measure, and ask these rules whether
 to render on (stages/sequential.py). The verdicts built on them: a scene's
 ``unbiased`` check (scene.py) and a failure case's verdict (cases.py:
-``case_verdict``, whose names are defined here). A sun not yet seen is a
-tail too (:func:`unseen_sun`): no downward rejection counts while the
-estimator's largest pdf allows fewer than :data:`SUN_HITS` direct hits per
-pixel (stages/cases.py).
+``case_verdict``, whose names are defined here). On a map with a sun
+they are read with the sun in mind (checks/sun.py).
 """
 
 from __future__ import annotations
@@ -22,10 +20,6 @@ from scipy import stats
 from mcillum.integrators import registry
 
 from ..stats import tails
-
-#: Below this many expected direct sun hits per pixel, K renders cannot tell
-#: a missed sun from a bias (see envmaps/sun.py).
-SUN_HITS = 3.0
 
 #: Failure-case verdicts that leave the ``stable`` check inconclusive: a
 #: rejection that a heavy tail explains, and one that did not replicate.
@@ -88,8 +82,8 @@ def by_design(name: str) -> bool:
 #   every pixel rejection is of that kind (path against path); its image
 #   mean still counts (a reference rendered with other settings would shift
 #   it). Later looks render fresh seeds, which path's renders do not share.
-# * On the map with a widened sun (stages/cases.py) no pixel's rejection
-#   **downward** counts (:func:`partly_hidden`): pixels that see the disc
+# * On the map with a widened sun (stages/sun_split.py) no pixel's rejection
+#   **downward** counts (sun.partly_hidden): pixels that see the disc
 #   only through a sliver are dark until its hits reach them; the image
 #   mean decides there.
 # * A rejection that does not count is **inconclusive**: the test saw a
@@ -273,44 +267,6 @@ def decider(reference_mean: np.ndarray, reference_events: np.ndarray | None,
     return read
 
 
-def unseen_sun(d: Decision, c, hits: float | None) -> Decision:
-    """``d`` read with a sun the renders may not have hit yet (``hits``: the
-    direct hits per pixel the estimator's largest pdf allows so far; None:
-    no bound): no downward rejection counts — a missed sun only darkens —
-    so a fail that rested on one becomes inconclusive, and a confirming
-    batch does not count one either."""
-    up = np.asarray(c.pooled_t) > 0
-    d.pooled = None if d.pooled is None else d.pooled & up
-    d.pixels = None if d.pixels is None else d.pixels & (np.nan_to_num(c.pixel_t) > 0)
-    d.tail_pixels = np.ones(np.shape(c.pixel_p), bool)
-    if d.outcome == "fail" and not d.counted_up:
-        d.outcome = "inconclusive"
-        d.reason += ("; the sun may be unseen: " +
-                     (f"its largest pdf allows {hits:.2g} direct hits per pixel so far "
-                      f"(fewer than {SUN_HITS:g})" if hits is not None else
-                      "its facts give no largest pdf (max_direction_pdf)"))
-    return d
-
-
-def partly_hidden(d: Decision, c) -> Decision:
-    """``d`` read for a bright source the samples hit often over the image
-    but that some pixels see only through a sliver (the widened sun,
-    stages/cases.py): such a pixel is darker, and holds no firefly, until
-    the sliver's hits reach it, while the rest of the image shows no tail
-    (probe_spheres under city, seed set 5: one pixel at 6 % of the
-    reference after 4 096 samples of BSDF sampling). No downward pixel
-    rejection counts; the image mean still counts both ways, so a clamp or a
-    pdf that darkens the source fails. A fail that rested on such pixels
-    becomes inconclusive, and the test renders on."""
-    d.pixels = None if d.pixels is None else d.pixels & (np.nan_to_num(c.pixel_t) > 0)
-    if d.outcome == "fail" and not d.counted_up and not (d.pooled is not None
-                                                         and d.pooled.any()):
-        d.outcome = "inconclusive"
-        d.reason += ("; darker pixels of a source they may see only through a sliver "
-                     "do not count before its hits reach them")
-    return d
-
-
 def settle(d: Decision, c, epsilon: float, samples: int = 0) -> Decision:
     """``d`` with the image mean's relative bias and the half-width of its
     interval (:meth:`statistics.Comparison.relative_bias`) recorded; a pass
@@ -366,6 +322,7 @@ class Evidence:
     control: np.ndarray | None = None
     is_control: bool = False
     settled: Settled | None = None
+    sun: object | None = None       # results.SunSplit (stages/sun_split.py)
 
     @property
     def tail_resolved(self) -> bool:

@@ -3,13 +3,19 @@
 evidence), ``converges`` (the slope of relMSE against spp); for an estimator
 biased by design (a quadrature) ``bias_shrinks`` (its bias goes to 0: within
 convergence.BIAS_LIMIT at N = 256) and ``calibrated`` (its posterior std
-against the measured error) instead, from the quadrature stage.
+against the measured error) instead, from the quadrature stage. On a map
+with a sun, an ``unbiased`` that the real sun left inconclusive is decided
+by the sun split as a heavy-tail failure case's is (stages/sun_split.py,
+:func:`split_decision`).
 """
 
 from __future__ import annotations
 
+import dataclasses
+
 from ..results import Check, Convergence, EstimatorResult, Quadrature, Unbiasedness
 from . import by_estimator, check, convergence, evidence
+from .cases import split_line, widened_decided
 from .evidence import Evidence, by_design
 
 
@@ -27,8 +33,13 @@ def judge(scene_id: str, measured: dict[str, EstimatorResult],
 
 
 def decide_unbiasedness(u: Unbiasedness, e: Evidence) -> None:
-    """The verdict of :func:`evidence.unbiasedness`, written into ``u``."""
+    """The verdict of :func:`evidence.unbiasedness`, or where the real sun
+    left it inconclusive, of the sun split (:func:`split_decision`), written
+    into ``u``."""
     d = evidence.unbiasedness(e)
+    if e.sun is not None:
+        u.sun = e.sun
+        d = split_decision(d, e.sun, e.settled.samples)
     u.outcome, u.reason = d.outcome, d.reason
     u.rejected_up, u.rejected_down = d.rejected_up, d.rejected_down
     u.tail_events, u.samples_needed = d.tail_events, d.samples_needed
@@ -36,6 +47,24 @@ def decide_unbiasedness(u: Unbiasedness, e: Evidence) -> None:
     if e.settled is not None:
         u.looks, u.samples_per_pixel = e.settled.looks, e.settled.samples
         u.summary = e.settled.summary or u.summary
+
+
+def split_decision(d: evidence.Decision, s, samples: int) -> evidence.Decision:
+    """The decision ``d`` on the real map, decided by its sun split ``s``
+    (a results.SunSplit) where it was inconclusive, as a heavy-tail failure
+    case's (checks/cases.py): biased without the sun fails; with the sun
+    widened, that test's pass or fail is the verdict; otherwise ``d``
+    stands. ``samples``: per pixel, what the real map's test reached."""
+    if d.outcome != "inconclusive":
+        return d
+    if not s.sunless_passed:
+        return dataclasses.replace(d, outcome="fail", reason=(
+            f"biased on the map without its sun: {s.sunless_reason}; {s.sunless_test}; "
+            f"with the sun: {d.reason}"))
+    if widened_decided(s):
+        return dataclasses.replace(d, outcome=s.widened_outcome,
+                                   reason=split_line(s, samples))
+    return d
 
 
 def decide_convergence(c: Convergence, resolved: bool, rungs: int | None = None) -> None:
@@ -63,8 +92,9 @@ def unbiased(scene_id: str, measured: dict[str, EstimatorResult]) -> list[Check]
         if by_design(name):
             continue
         u = est.unbiasedness
+        plain = u.outcome == "pass" and not widened_decided(u.sun)
         out.append(check(scene_id, name, "unbiased", u.outcome,
-                         u.summary if u.outcome == "pass" else f"{u.reason} — {u.summary}"))
+                         u.summary if plain else f"{u.reason} — {u.summary}"))
     return out
 
 

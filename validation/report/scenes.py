@@ -283,7 +283,8 @@ def _statistics_section(scene: SceneResult, run_dir: str, colours: dict,
                       f"not tested: {slope}")
         else:
             tested = (f"{outcome(u.outcome, u.reason)} ({100 * u.pass_fraction:.1f} %)"
-                      + _image_bias(u), f"{outcome(c.outcome, c.message)} {slope}")
+                      + _image_bias(u) + _sun_split(u),
+                      f"{outcome(c.outcome, c.message)} {slope}")
         rows.append(
             f"<tr><td>{swatch(est.name, colours)}</td>"
             f"<td>{fmt(top.relmse)} ({fmt(top.relmse / best_rel if best_rel else None, '.2f')}×)</td>"
@@ -300,6 +301,18 @@ def _statistics_section(scene: SceneResult, run_dir: str, colours: dict,
 <th>unbiased (pixels passing; image-mean bias ± interval, looks)</th><th>slope [95 % CI]</th></tr>
 {''.join(rows)}</table>
 <div class=row>{charts.error_vs_spp(scene, colours)}</div>"""
+
+
+def _sun_split(u) -> str:
+    """The sun split's outcomes (results from minor version 14 on a map with
+    a sun): without the sun, and with it widened where that was tested."""
+    s = getattr(u, "sun", None)
+    if s is None:
+        return ""
+    widened = f", widened {outcome(s.widened_outcome, s.widened_reason)}" \
+        if s.widened_outcome else ""
+    return (f"; split: without the sun {outcome(s.sunless_outcome, s.sunless_reason)}"
+            f"{widened}")
 
 
 def _image_bias(u) -> str:

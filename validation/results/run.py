@@ -39,7 +39,10 @@ VERSION = 1
 #: with the map's sun widened, where the real sun's was inconclusive.
 #: 13: a quadrature estimator's ``settings`` may carry ``glossy``: the
 #: settings of the two sets at a glossy shading point.
-MINOR_VERSION = 13
+#: 14: a scene estimator's unbiasedness may carry ``sun``: its sun split (as
+#: a heavy-tail failure row's), where the scene's map has a sun and the real
+#: sun's test did not pass.
+MINOR_VERSION = 14
 
 
 @dataclass(kw_only=True)

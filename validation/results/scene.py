@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from .cases import SunSplit
 from .common import Outcome, ReferenceSummary, optional
 from .learning import Learning
 from .quadrature import Quadrature
@@ -63,6 +64,10 @@ class Unbiasedness(Outcome):
     looks: int = 1
     relative_bias: list[float] | None = optional()
     half_width: float | None = optional()
+    #: On a map with a sun, where the real sun's test was not a pass: the
+    #: same test at the ladder's top rung without the sun and with it
+    #: widened (minor version 14, stages/sun_split.py).
+    sun: SunSplit | None = optional()
 
 
 @dataclass(kw_only=True)

@@ -70,7 +70,9 @@ def summary(results: Results) -> str:
             lines.append(
                 f"| {est.name} | {top.relmse:.3g} | {top.bias:+.2e} ± {top.bias_se:.1e} | "
                 + ("biased by design " if by_design else f"{_word(u.outcome)} ")
-                + f"({100 * u.pass_fraction:.1f}) | "
+                + f"({100 * u.pass_fraction:.1f})"
+                + (f" split: {u.sun.sunless_outcome}/{u.sun.widened_outcome or '–'}"
+                   if u.sun is not None else "") + " | "
                 + ("exact" if c.exact else
                    ("not tested " if by_design else f"{_word(c.outcome)} ") +
                    f"{c.slope:+.2f} [{c.low:+.2f}, {c.high:+.2f}]")

@@ -3,16 +3,12 @@
 A case renders K seeds per estimator at one spp (after asking each whether it
 refuses the scene), builds `path`'s reference, and measures how each
 estimator's error spreads over the seeds (stats/tails.py) and its
-batch-means test, replicated where the rules of evidence count a rejection.
-On a map with a sun, the estimators whose test did not pass are tested again
-on the map without its sun: the **sunless twin**, a context of its own that
-the pipeline runs through :data:`~mcillum.validation.pipeline.SUNLESS`
-(rendering is linear in the map, envmaps/sun.py). Those the real sun left
-inconclusive and that passed without it are tested once more on the map
-with its sun **widened** to a disc the samples hit (envmaps/sun.py:
-``widen``), the **widened twin**, run the same way. A parameter sweep runs a
-case's renders at every value and reports its rows along the parameter.
-The verdicts are checks/cases.py's.
+batch-means test, continued where the rules of evidence cannot decide yet
+(stages/sun_split.py: ``settled_test``). On a map with a sun, what the real
+sun leaves undecided is decided on the map without it and with it widened:
+the sun split (stages/sun_split.py). A parameter sweep runs a case's
+renders at every value and reports its rows along the parameter. The
+verdicts are checks/cases.py's.
 """
 
 from __future__ import annotations
@@ -23,13 +19,11 @@ from mcillum import files
 from mcillum.envmaps import sun
 from mcillum.integrators import UnreachableContentError, registry
 
-from ..checks import evidence
 from ..plan import seeds
-from ..results import (BatchTest, CaseReference, CaseResult, CaseRow, SunSplit, Sweep,
-                       SweepRow, TailNumbers)
-from ..run import jobs, references, renders, stacks
+from ..results import CaseReference, CaseResult, CaseRow, Sweep, SweepRow, TailNumbers
+from ..run import jobs, renders, stacks
 from ..stats import metrics, statistics, tails
-from . import common, sequential
+from . import common, sun_split
 from .common import REFERENCE, compile_kernels, kept_file, scene_summary
 
 ALPHA = statistics.ALPHA
@@ -72,10 +66,11 @@ def _refusal_message(error: UnreachableContentError) -> str:
 # ----------------------------------- Renders ------------------------------------
 
 def render_seeds(ctx) -> None:
-    """K renders per estimator at the plan's spp (the case's seed stream; kept).
+    """K renders per estimator at the context's one spp (common.first_look;
+    its seed stream; kept).
     A sweep's are timed (run/executors.py): its chart puts their seconds
     beside the error."""
-    spp, k = ctx.plan.spp, ctx.plan.seeds
+    spp, k = common.first_look(ctx)
     name = ctx.streams["renders"]
     ctx.stacks = {spp: stacks.kept(ctx, kept_file(ctx, name), name, ctx.integrators,
                                    dict.fromkeys(ctx.integrators, spp), k,
@@ -125,177 +120,7 @@ def test_bias(ctx) -> None:
         n = row.numbers
         if n is None or row.refused or n.nonfinite_values or n.negative_values:
             continue
-        n.test = settled_test(ctx, name, found[name].images)
-
-
-def _reader(ctx, name: str):
-    """``read(comparison, batches, look)``: the rules of evidence for this
-    case's renders of ``name``, with path's fireflies (counted once per
-    case) as the reference's tail. On a map with a sun, the sun is a tail
-    the renders may not have seen yet, whatever else they caught: while
-    the estimator's largest pdf expects fewer than SUN_HITS direct hits per
-    pixel in the samples so far (N·Ω·max p; or it declares no largest pdf),
-    no downward rejection counts (evidence.unseen_sun) and the test renders
-    on. On the widened sun's map (``ctx.disc``) no downward pixel rejection
-    counts (evidence.partly_hidden)."""
-    found = ctx.stacks[ctx.plan.spp]
-    path_events = (tails.tail_events([found[REFERENCE].images], ctx.reference.mean)[0]
-                   if REFERENCE in found else None)
-    decide = evidence.decider(ctx.reference.mean, path_events)
-    directions = _directions(ctx, name)
-    samples_emitters = _samples_emitters(name)
-
-    def read(comparison, batches, look):
-        d = decide(comparison, batches, look)
-        if ctx.disc:
-            return evidence.partly_hidden(d, comparison)
-        if ctx.sun is None or samples_emitters:
-            return d
-        hits = expected_sun_hits(name, sequential.samples(batches) * directions,
-                                 ctx.sun["solid_angle"])
-        if hits is None or hits < evidence.SUN_HITS:
-            evidence.unseen_sun(d, comparison, hits)
-        return d
-    return read
-
-
-def settled_test(ctx, name: str, x: np.ndarray) -> BatchTest:
-    """The sequential test (stages/sequential.py) of estimator ``name``'s
-    renders ``x`` at the case's spp, as a :class:`BatchTest`."""
-    seq = ctx.run.sequential
-    settled, c = sequential.settle([(ctx.plan.spp, x)], ctx.reference.moments(),
-                                   _reader(ctx, name), sequential.renderer(ctx, name),
-                                   seq.case_epsilon, _growth(ctx),
-                                   reference_spp=ctx.reference.spp)
-    d = settled.decision
-    return BatchTest(passed=c.passed, pass_fraction=c.pass_fraction, min_p=c.min_p,
-                     pooled_p=[float(p) for p in c.pooled_p], alpha_pixel=c.alpha_pixel,
-                     test=c.summary(), outcome=d.outcome, reason=d.reason,
-                     tail_events=d.tail_events, samples_needed=d.samples_needed,
-                     counted_up=d.counted_up, rejected_pixels=d.rejected_up + d.rejected_down,
-                     replicated=settled.replicated,
-                     replication_test=settled.replication or None, looks=settled.looks,
-                     samples_per_pixel=settled.samples, relative_bias=d.relative_bias,
-                     half_width=d.half_width)
-
-
-# ------------------------------ The sunless twin --------------------------------
-
-def sunless_twin(ctx) -> None:
-    """``ctx.sunless``: the case on its map without the sun, for the
-    estimators whose test did not pass (inconclusive: a rejection a tail can
-    explain; or biased), with `path`, on seed streams of its own; None
-    unless this is a heavy-tail case on a map."""
-    tested = [n for n, row in ctx.rows.items() if row.numbers and row.numbers.test
-              and row.numbers.test.outcome != "pass"]
-    if not tested or ctx.plan.group != "heavy_tail" or "envmap" not in ctx.resolved:
-        return
-    ctx.sunless = ctx.derive([*tested, REFERENCE], label=f"{ctx.id} sunless",
-                             streams={"renders": "sunless", "sequential": "sunless_sequential"},
-                             envmap=ctx.sunless_map)
-
-
-def split_sun(ctx) -> None:
-    """Each estimator of the sunless twin tested there by the same rules (a
-    bias there is a bias, whatever the sun does), with the sun's facts and
-    the number of direct hits it expects in the samples its test reached,
-    N·Ω·max p."""
-    sub = ctx.sunless
-    if sub is None:
-        return
-    sunless_mean = float(sub.reference.mean[..., :3].mean())
-    image_mean = float(ctx.reference.mean[..., :3].mean())
-    for name in sub.estimators[:-1]:        # those tested (the last is path, the reference)
-        test = settled_test(sub, name, sub.stacks[ctx.plan.spp][name].images)
-        samples = ctx.rows[name].numbers.test.samples_per_pixel
-        ctx.rows[name].numbers.sun = SunSplit(
-            sun=ctx.sun, sunless_passed=test.outcome != "fail",
-            sunless_test=test.test, sunless_reference_mean=sunless_mean,
-            expected_sun_hits_per_pixel=expected_sun_hits(
-                name, samples * _directions(ctx, name), ctx.sun["solid_angle"]),
-            sun_share_of_image=1.0 - sunless_mean / image_mean, sunless_outcome=test.outcome,
-            sunless_reason=test.reason)
-
-
-# ----------------------------- The widened sun ---------------------------------
-
-def widened_twin(ctx) -> None:
-    """``ctx.widened``: the case on its map with the sun widened
-    (envmaps/sun.py, :func:`~mcillum.envmaps.sun.widen`), for the estimators
-    whose test on the real map the budget left inconclusive, that passed
-    without the sun, and that do not sample the emitters (an estimator that
-    does finds the sun by construction); with `path`, on seed streams of its
-    own; None unless there are such estimators."""
-    tested = [n for n, row in ctx.rows.items()
-              if row.numbers and row.numbers.test and row.numbers.test.outcome == "inconclusive"
-              and row.numbers.sun is not None and row.numbers.sun.sunless_outcome == "pass"
-              and not _samples_emitters(n)]
-    if not tested or not ctx.sun or not ctx.sun["texels"]:     # (no sun to widen)
-        return
-    widened_map, facts = sun.widened(ctx.resolved["envmap"])
-    ctx.widened = ctx.derive([*tested, REFERENCE], label=f"{ctx.id} widened sun",
-                             streams={"renders": "widened",
-                                      "sequential": "widened_sequential"},
-                             envmap=widened_map)
-    ctx.widened.disc = True
-    for name in tested:
-        ctx.rows[name].numbers.sun.widened = facts
-
-
-def widened_reference(ctx) -> None:
-    """`path`'s reference of the widened twin (common.build_reference), then
-    rendered on until its spp no longer caps the test's budget
-    (sequential.REFERENCE_LEAD): the disc is hit often enough for the budget
-    to decide, and a reference of the usual precision stopped sun_sky's at
-    half of it (image mean ±4.5 % at 131 072 samples per pixel)."""
-    common.build_reference(ctx)
-    ref = ctx.reference
-    needed = sequential.budget(ctx.plan.spp * ctx.plan.seeds, _growth(ctx)) \
-        / sequential.REFERENCE_LEAD
-    if ref.spp < needed:
-        variance = float(ref.variance_of_mean.mean())     # (as references.ensure reads it)
-        ctx.reference = references.ensure(ctx, variance * ref.spp / needed)
-
-
-def split_widened(ctx) -> None:
-    """Each estimator of the widened twin tested there by the same rules of
-    evidence, but for the pixels that see the disc only through a sliver
-    (evidence.partly_hidden): the disc is hit often over the image, so its
-    image mean decides."""
-    sub = ctx.widened
-    if sub is None:
-        return
-    for name in sub.estimators[:-1]:        # those tested (the last is path, the reference)
-        test = settled_test(sub, name, sub.stacks[ctx.plan.spp][name].images)
-        split = ctx.rows[name].numbers.sun
-        split.widened_outcome, split.widened_reason = test.outcome, test.reason
-        split.widened_test = test.test
-
-
-def _growth(ctx) -> float:
-    """A case's test budget as a multiple of its first look's samples."""
-    return ctx.run.growth(ctx.run.sequential.case_budget)
-
-
-def _samples_emitters(name: str) -> bool:
-    """Does estimator ``name`` sample the emitters (it reaches point lights)?
-    Then it finds the sun by construction: it has no unseen sun to plead,
-    and no widened sun is needed to decide it."""
-    return "delta_emitter" in registry.facts(name).reachable
-
-
-def _directions(ctx, name: str) -> int:
-    """Directions per camera sample of estimator ``name`` (N for a point set)."""
-    return getattr(ctx.integrators[name].made, "directions", 1)
-
-
-def expected_sun_hits(name: str, samples: int, solid_angle: float) -> float | None:
-    """Direct hits on a sun of ``solid_angle`` that estimator ``name`` expects
-    in ``samples`` directions traced from a pixel (camera samples × the
-    directions per sample of a point-set estimator), at most N·Ω·max p
-    (None: unbounded, its registry facts give no largest pdf)."""
-    pdf = registry.facts(name).max_direction_pdf
-    return None if pdf is None else samples * solid_angle * pdf
+        n.test = sun_split.settled_test(ctx, name, found[name].images)
 
 
 # ---------------------------------- Evidence ------------------------------------

@@ -101,6 +101,15 @@ def compile_kernels(ctx) -> None:
                            zip(ctx.integrators, ctx.render(batch, None, timed=True))}
 
 
+def first_look(ctx) -> tuple[int, int]:
+    """(spp, K) of a context's renders at one spp: a failure case's (or a
+    sweep point's) spp and seeds; for a scene comparison, the top rung of its
+    ladder (its sun split's twins, stages/sun_split.py)."""
+    if ctx.is_case:
+        return ctx.plan.spp, ctx.plan.seeds
+    return ctx.plan.ladder[-1], ctx.plan.renders
+
+
 def kept_file(ctx, what: str) -> str:
     """A file name for ``what`` that differs between contexts sharing an id
     (the points of a sweep, a case's sunless twin)."""

@@ -84,12 +84,12 @@ class Context:
     learning: dict = field(default_factory=dict)      # learning.measure: name → Learning
     rows: dict = field(default_factory=dict)          # tail_numbers …: name → CaseRow
     per_render: dict = field(default_factory=dict)    # tail_numbers: name → relMSE per seed
-    sunless: "Context" = None       # cases.sunless_twin: the case on its map without the sun
-    sun: dict = None                # cases.test_bias: the sun's facts (envmaps.sun)
-    sunless_map: str = None         # cases.test_bias: the map without its sun (a file)
-    widened: "Context" = None       # cases.widened_twin: the case with its sun widened
-    #: cases.widened_twin: this context's map holds the widened sun (some
-    #: pixels see it only through a sliver: checks.evidence.partly_hidden)
+    sunless: "Context" = None       # sun_split.sunless_twin: on its map without the sun
+    sun: dict = None                # cases.test_bias, sun_split.find_sun: the sun's facts
+    sunless_map: str = None         # cases.test_bias, sun_split.find_sun: the map without it
+    widened: "Context" = None       # sun_split.widened_twin: with its sun widened
+    #: sun_split.widened_twin: this context's map holds the widened sun (some
+    #: pixels see it only through a sliver: checks.sun.partly_hidden)
     disc: bool = False
     sweep_rows: list = field(default_factory=list)    # cases.sweep_rows: SweepRow per estimator
     display: "Context" = None       # speed.display: the scene at the display resolution
