@@ -282,9 +282,7 @@ def _statistics_section(scene: SceneResult, run_dir: str, colours: dict,
             tested = (f"biased by design ({100 * u.pass_fraction:.1f} % of pixels pass)",
                       f"not tested: {slope}")
         else:
-            tested = (f"{outcome(u.outcome, u.reason)} ({100 * u.pass_fraction:.1f} %)"
-                      + _image_bias(u) + _sun_split(u),
-                      f"{outcome(c.outcome, c.message)} {slope}")
+            tested = (_unbiased_cell(u), f"{outcome(c.outcome, c.message)} {slope}")
         rows.append(
             f"<tr><td>{swatch(est.name, colours)}</td>"
             f"<td>{fmt(top.relmse)} ({fmt(top.relmse / best_rel if best_rel else None, '.2f')}×)</td>"
@@ -303,16 +301,18 @@ def _statistics_section(scene: SceneResult, run_dir: str, colours: dict,
 <div class=row>{charts.error_vs_spp(scene, colours)}</div>"""
 
 
-def _sun_split(u) -> str:
-    """The sun split's outcomes (results from minor version 14 on a map with
-    a sun): without the sun, and with it widened where that was tested."""
+def _unbiased_cell(u) -> str:
+    """The unbiasedness verdict, the pixels passing and the image mean's
+    bias; where the sun split was tested (results from minor version 14), the
+    real map's numbers follow its outcomes: without the sun, and widened."""
+    real = f"{100 * u.pass_fraction:.1f} %{_image_bias(u)}"
     s = getattr(u, "sun", None)
     if s is None:
-        return ""
-    widened = f", widened {outcome(s.widened_outcome, s.widened_reason)}" \
-        if s.widened_outcome else ""
-    return (f"; split: without the sun {outcome(s.sunless_outcome, s.sunless_reason)}"
-            f"{widened}")
+        return f"{outcome(u.outcome, u.reason)} ({real})"
+    widened = (f", with it widened {outcome(s.widened_outcome, s.widened_reason)}"
+               if s.widened_outcome else "")
+    return (f"{outcome(u.outcome, u.reason)} — sun split: without the sun "
+            f"{outcome(s.sunless_outcome, s.sunless_reason)}{widened}; the real map: {real}")
 
 
 def _image_bias(u) -> str:
