@@ -86,3 +86,35 @@ def test_a_scene_on_a_sun_map_is_decided_by_its_split(llvm, tmp_path):
     assert wrong.sun is None or wrong.sun.sunless_outcome == "fail"
     assert clamp.sun is not None and clamp.sun.widened_outcome == "fail"
     assert est["path"].sun is None and unbiased["path"].outcome == "pass"
+
+
+def test_a_map_named_in_its_emitter_gets_a_note_not_a_split(llvm):
+    """A user's scene whose envmap emitter names its file cannot be split:
+    where its map has a sun and an estimator is left open, a note of the
+    scene says so and how to give the map as $envmap; a map without a sun,
+    or every estimator decided, adds none."""
+    from types import SimpleNamespace
+
+    import mitsuba as mi
+
+    from mcillum.envmaps import catalog
+    from mcillum.validation.checks.evidence import Evidence, Settled
+    from mcillum.validation.stages import sun_split
+
+    def ctx(map_name: str, outcome: str):
+        path = catalog.resolve(map_name)[0]
+        scene = mi.load_dict({"type": "scene", "sky": {"type": "envmap", "filename": path}})
+        found = Evidence(comparison=object(), events=None, samples=0)
+        found.settled = Settled(decision=Decision(outcome=outcome, reason=""), looks=1,
+                                samples=0, budget=0)
+        return SimpleNamespace(is_case=False, resolved={}, scene=scene, scene_notes=[],
+                               estimators=["cosine_hemisphere", "path"],
+                               evidence={"cosine_hemisphere": found})
+
+    open_sun = ctx("sun_sky", "inconclusive")
+    sun_split.note_unsplit_sun(open_sun)
+    (note,) = open_sun.scene_notes
+    assert "$envmap" in note and "cosine_hemisphere" in note and "sr" in note
+    for quiet in (ctx("sun_sky", "pass"), ctx("courtyard", "inconclusive")):
+        sun_split.note_unsplit_sun(quiet)
+        assert quiet.scene_notes == []

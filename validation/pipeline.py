@@ -60,8 +60,8 @@ from .stages.context import Context, Run
 from .stats import metrics, statistics
 
 SCENE = (common.load, common.choose_estimators, scene.render_ladder, common.build_reference,
-         scene.measure, scene.settle, quadrature.measure, learning.measure, common.release,
-         scene.save_images)
+         scene.measure, scene.settle, sun_split.note_unsplit_sun, quadrature.measure,
+         learning.measure, common.release, scene.save_images)
 SPEED = (speed.display, speed.time_costs, speed.render_budgets, speed.display_reference,
          speed.release_display, speed.measure_speed, speed.save_display)
 CASE = (common.load, cases.probe_refusals, cases.render_seeds, common.build_reference,

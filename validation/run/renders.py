@@ -150,6 +150,14 @@ def load_resolved(path: str | os.PathLike, resolved: dict,
         return mi.load_string(text, **used)
 
 
+def environment_texels(scene: mi.Scene) -> np.ndarray | None:
+    """The texels (H, W, C) of the scene's environment map as Mitsuba holds
+    them (an ``envmap`` emitter's ``data``), or None where it has none."""
+    emitter = scene.environment()
+    params = mi.traverse(emitter) if emitter is not None else {}
+    return np.array(params["data"]) if "data" in params else None
+
+
 @contextmanager
 def _resolving(folders):
     """Mitsuba's file resolver looks in ``folders`` first, then where it

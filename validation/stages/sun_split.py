@@ -29,7 +29,7 @@ from mcillum.integrators import registry
 from ..checks import evidence
 from ..checks import sun as sun_rules
 from ..results import BatchTest, SunSplit
-from ..run import references
+from ..run import references, renders
 from ..stats import tails
 from . import common, sequential
 from .common import REFERENCE
@@ -136,6 +136,29 @@ def find_sun(ctx) -> None:
     sunless_map, facts = sun.without_sun(ctx.resolved["envmap"])
     if facts["texels"]:
         ctx.sunless_map, ctx.sun = sunless_map, facts
+
+
+def note_unsplit_sun(ctx) -> None:
+    """A scene comparison whose map is named in its emitter rather than
+    given as ``$envmap`` cannot be split: where that map has a sun and an
+    estimator's ``unbiased`` did not pass, a note of the scene says so and
+    how to have it split. Reads the loaded scene's environment emitter (its
+    texels, as Mitsuba holds them), so it runs before the scene is let go."""
+    if ctx.is_case or "envmap" in (ctx.resolved or {}) or ctx.scene is None:
+        return
+    open_ = [n for n in ctx.estimators if n != REFERENCE and not evidence.by_design(n)
+             and _outcome(ctx, n) not in (None, "pass")]
+    texels = renders.environment_texels(ctx.scene) if open_ else None
+    if texels is None:
+        return
+    _, facts = sun.split(texels)
+    if facts["texels"]:
+        ctx.scene_notes.append(
+            f"its map has a sun ({facts['solid_angle']:.2g} sr, "
+            f"{100 * facts['power_share']:.0f} % of the map's power) that the sun split "
+            "cannot take off, as the emitter names its file: give the map as $envmap "
+            "(<default name=\"envmap\" value=\"…\"/> and filename=\"$envmap\") to have "
+            f"{', '.join(open_)} tested without it and with it widened")
 
 
 def sunless_twin(ctx) -> None:
