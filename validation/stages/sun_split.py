@@ -112,6 +112,16 @@ def _outcome(ctx, name: str) -> str | None:
     return found.settled.decision.outcome
 
 
+def _not_passed(ctx) -> list[str]:
+    """The estimators whose test on the real map was run and did not pass:
+    not `path`, the reference, nor in a scene comparison one biased by
+    design, which has no ``unbiased`` check (a case's row of one still
+    says whether it is biased without the sun too)."""
+    return [n for n in ctx.estimators if n != REFERENCE
+            and (ctx.is_case or not evidence.by_design(n))
+            and _outcome(ctx, n) not in (None, "pass")]
+
+
 def _holder(ctx, name: str):
     """Where ``name``'s sun split goes: a case row's numbers, a scene
     estimator's evidence (checks/scene.py writes it into its record)."""
@@ -146,8 +156,7 @@ def note_unsplit_sun(ctx) -> None:
     texels, as Mitsuba holds them), so it runs before the scene is let go."""
     if ctx.is_case or "envmap" in (ctx.resolved or {}) or ctx.scene is None:
         return
-    open_ = [n for n in ctx.estimators if n != REFERENCE and not evidence.by_design(n)
-             and _outcome(ctx, n) not in (None, "pass")]
+    open_ = _not_passed(ctx)
     texels = renders.environment_texels(ctx.scene) if open_ else None
     if texels is None:
         return
@@ -170,8 +179,7 @@ def sunless_twin(ctx) -> None:
     if ctx.is_case and ctx.plan.group != "heavy_tail":
         return
     find_sun(ctx)
-    tested = [n for n in ctx.estimators if n != REFERENCE and not evidence.by_design(n)
-              and _outcome(ctx, n) not in (None, "pass")]
+    tested = _not_passed(ctx)
     if not tested or ctx.sun is None:
         return
     ctx.sunless = ctx.derive([*tested, REFERENCE], label=f"{ctx.id} sunless",
