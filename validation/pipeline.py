@@ -61,7 +61,7 @@ from .stats import metrics, statistics
 
 SCENE = (common.load, common.choose_estimators, scene.render_ladder, common.build_reference,
          scene.measure, scene.settle, sun_split.note_unsplit_sun, quadrature.measure,
-         learning.measure, common.release, scene.save_images)
+         learning.measure, common.release, scene.save_images, sun_split.sunless_twin)
 SPEED = (speed.display, speed.time_costs, speed.render_budgets, speed.display_reference,
          speed.release_display, speed.measure_speed, speed.save_display)
 CASE = (common.load, cases.probe_refusals, cases.render_seeds, common.build_reference,
@@ -91,7 +91,6 @@ def compare_scene(run: Run, plan: profiles.SceneRun, estimators, speed_stage: bo
                   label=plan.id)
     ctx.scene_notes += notes
     run_stages(SCENE, ctx)
-    sun_split.sunless_twin(ctx)
     split_the_sun(ctx)
     ctx.checks = scene_checks.judge(ctx.id, ctx.measured, ctx.evidence, ctx.quadrature)
     if speed_stage and plan.display is not None and registry.REFERENCE in ctx.integrators:

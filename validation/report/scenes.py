@@ -306,7 +306,7 @@ def _unbiased_cell(u) -> str:
     bias; where the sun split was tested (results from minor version 14), the
     real map's numbers follow its outcomes: without the sun, and widened."""
     real = f"{100 * u.pass_fraction:.1f} %{_image_bias(u)}"
-    s = getattr(u, "sun", None)
+    s = u.sun
     if s is None:
         return f"{outcome(u.outcome, u.reason)} ({real})"
     widened = (f", with it widened {outcome(s.widened_outcome, s.widened_reason)}"
