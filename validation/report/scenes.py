@@ -50,7 +50,9 @@ def _quadrature_section(scene: SceneResult, colours: dict) -> str:
         r, c = q.equal_rays, q.calibration
         rays = (f"{r.ratio:.3g} [{r.ratio_low:.3g}, {r.ratio_high:.3g}]"
                 f" ({r.seconds / r.baseline_seconds:.2f}× the time)") if r else "—"
-        against = f"<code>{html.escape(r.baseline)}</code>" if r else "—"
+        against = (f"<code>{html.escape(r.baseline)}</code>" + (
+            f" (its error at {r.baseline_read_at} spp, ÷ {q.directions})"
+            if r.baseline_read_at and r.baseline_read_at != r.baseline_spp else "")) if r else "—"
         good = c is not None and (c.verdict == "calibrated" or c.verdict.startswith("exact"))
         cal = (f"<span class={'ok' if good else 'warn'}>{html.escape(c.verdict)}</span>: median "
                f"{fmt(c.median, '.2f')} ({fmt(c.q25, '.2f')}–{fmt(c.q75, '.2f')})"
@@ -73,7 +75,9 @@ def _quadrature_section(scene: SceneResult, colours: dict) -> str:
 <p>At {q0.spp} camera spp, {q0.renders} renders each. <b>Equal rays</b>: relMSE of N
 directions × {q0.spp} spp over that of its baseline at N·{q0.spp} spp (<code>cosine_hemisphere</code>;
 <code>emitter_sampling</code> for one that samples the light; below 1: the point set wins),
-95 % interval. The N directions of a shading point share
+95 % interval; where the scene's sampler is independent the baseline's error is read off its
+ladder renders at {q0.spp} spp and divided by N (N·spp independent samples have 1/N of the
+variance), else rendered at N·spp. The time beside it: medians of timed renders of each. The N directions of a shading point share
 one camera sample: where a pixel's own content varies (a texture, an edge), N·spp camera
 samples of the baseline also antialias it, and the ratio says so. <b>Calibration</b>: per pixel, the measured
 RMSE over the predicted posterior std (the reference's variance added); calibrated when the

@@ -22,6 +22,9 @@ class EqualRays:
     ratio_high: float
     seconds: float               # median per render
     baseline_seconds: float
+    # the spp the baseline's error was read at: N · spp where rendered there,
+    # the ladder's spp where scaled to N · spp by 1/N (independent samples)
+    baseline_read_at: int | None = optional()
 
 
 @dataclass(kw_only=True)

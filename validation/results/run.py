@@ -42,7 +42,10 @@ VERSION = 1
 #: 14: a scene estimator's unbiasedness may carry ``sun``: its sun split (as
 #: a heavy-tail failure row's), where the scene's map has a sun and the real
 #: sun's test did not pass.
-MINOR_VERSION = 14
+#: 15: a quadrature estimator's ``equal_rays`` may carry ``baseline_read_at``:
+#: the spp at which the baseline's error was measured (the ladder's top rung,
+#: scaled by 1/N, where the scene's sampler is independent).
+MINOR_VERSION = 15
 
 
 @dataclass(kw_only=True)

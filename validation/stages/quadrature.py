@@ -3,11 +3,18 @@
 facts ``depths``) is measured on beyond the spp ladder, at the ladder's top
 rung and resolution.
 
-* **Equal rays.** K renders of N directions × spp camera samples against K
-  renders of its baseline (facts ``equal_rays_baseline``: cosine_hemisphere,
-  or emitter_sampling for one that samples the light) at N·spp spp: the ratio of their relMSE
-  (each less the reference's own relative variance), with a 95 % interval
-  from the spread of the per-render errors (delta method on the log).
+* **Equal rays.** The K renders of N directions × spp camera samples at the
+  ladder's top rung against its baseline (facts ``equal_rays_baseline``:
+  cosine_hemisphere, or emitter_sampling for one that samples the light) at
+  N·spp spp: the ratio of their relMSE (each less the reference's own
+  relative variance), with a 95 % interval from the spread of the per-render
+  errors (delta method on the log). The baseline's error at N·spp is its
+  ladder renders' at spp over N where the scene's sampler is independent
+  (the N·spp samples of a pixel are then N independent means of spp: the
+  variance of their mean is 1/N of one's, exactly), measured where the
+  reference's noise is smallest against it; with another sampler, or a
+  baseline not on the ladder, K renders at N·spp. The seconds beside the
+  ratio are medians of TIMED renders of each, interleaved and timed alone.
 * **Bias against N** (estimators biased by design, facts ``unbiased``
   False): at N = 16, the default and 256, the bias per pixel b = m − r of
   the mean m of K renders (of the channel mean: the channels share their
@@ -38,10 +45,13 @@ from mcillum.integrators import registry
 from ..checks import convergence
 from ..results import (BiasAtN, Calibration, EqualRays, GlossySettings, Quadrature,
                        SettingScore, Settings)
-from ..run import stacks
+from ..plan import seeds
+from ..run import jobs, stacks
 from ..stats import metrics
 from . import common
 
+#: Timed renders of each estimator and baseline for the equal-ray pair's seconds.
+TIMED = 3
 #: The N of the bias-against-N measurement (the default N is added).
 BIAS_DIRECTIONS = (16, 256)
 #: Errors below this share of the reference count as exact: float32 films
@@ -56,10 +66,12 @@ def is_point_set(name: str) -> bool:
 
 def planned_renders(names, k: int) -> int:
     """Renders this stage makes for ``names`` at K renders each (for the
-    progress bar; estimators the scene refuses are counted too)."""
+    progress bar; estimators the scene refuses are counted too, a baseline
+    rendered at N·spp is not)."""
     sets = [n for n in names if is_point_set(n)]
-    return k * sum(2 + (0 if registry.facts(n).unbiased else len(BIAS_DIRECTIONS))
-                   for n in sets)
+    baselines = {registry.facts(n).equal_rays_baseline for n in sets}
+    return (TIMED * (len(sets) + len(baselines)) +
+            k * sum(0 if registry.facts(n).unbiased else len(BIAS_DIRECTIONS) for n in sets))
 
 
 def measure(ctx) -> None:
@@ -70,17 +82,20 @@ def measure(ctx) -> None:
         return
     spp, k = ctx.plan.ladder[-1], ctx.plan.renders
     ref = ctx.reference
+    seconds = _timings(ctx, names, spp)
+    baselines = {}                  # (baseline, N·spp) → its stack: one per scene
     for i, name in enumerate(names):
         n = ctx.integrators[name].made.directions
-        block = 2 * i
-        # (the equal-ray pair's median seconds are reported: timed, executors.py)
-        own = _renders(ctx, name, {}, spp, k, block, timed=True)
+        # the ladder's top rung: what K fresh renders at spp would be
+        own = ctx.stacks[spp][name]
         # (the Monte Carlo estimator its registry facts name)
         against = registry.facts(name).equal_rays_baseline
-        baseline = (_renders(ctx, against, {}, spp * n, k, block + 1, timed=True)
-                    if against in registry.names() else None)
-        rays = (_equal_rays(own, baseline, against, ref, n, spp)
-                if baseline is not None else None)
+        rays = None
+        if against in registry.names():
+            if (against, n * spp) not in baselines:
+                baselines[against, n * spp] = _baseline(ctx, against, n, spp, k, i, names)
+            rays = _equal_rays(own, baselines[against, n * spp], against, ref, n, spp,
+                               seconds[name], seconds[against, n * spp])
         bias, calibration = None, None
         if not registry.facts(name).unbiased:
             bias = [_bias(own, ref, n)]
@@ -94,6 +109,41 @@ def measure(ctx) -> None:
         ctx.quadrature[name] = Quadrature(name=name, directions=n, spp=spp, renders=k,
                                           equal_rays=rays, bias=bias, calibration=calibration,
                                           settings=_settings(ctx, name, spp))
+
+
+def _timings(ctx, names, spp) -> dict:
+    """Median seconds of TIMED renders: per point-set estimator at ``spp``
+    (by name) and per baseline at N·spp (by (baseline, N·spp)), each
+    baseline timed once with the estimators compared with it, interleaved
+    and timed alone (executors.py)."""
+    groups: dict = {}
+    for name in names:
+        against = registry.facts(name).equal_rays_baseline
+        if against in registry.names():
+            n = ctx.integrators[name].made.directions
+            groups.setdefault((against, n * spp), []).append(name)
+    out = {}
+    for g, ((against, rays), members) in enumerate(groups.items()):
+        made = {m: ctx.integrators[m] for m in members}
+        made[against] = ctx.integrators.get(against) or jobs.make(against, dict(ctx.params))
+        found = stacks.kept(ctx, f"quadrature{g}-timing-{against}", f"timing {rays}", made,
+                            {**{m: spp for m in members}, against: rays}, TIMED,
+                            seeds.stream("quadrature", g).take(TIMED), label=ctx.label,
+                            timed=True)
+        out.update({m: float(np.median(found[m].seconds)) for m in members})
+        out[against, rays] = float(np.median(found[against].seconds))
+    return out
+
+
+def _baseline(ctx, against: str, n: int, spp: int, k: int, i: int, names) -> stacks.Stack:
+    """The stack the baseline's error at N·spp is read from: its ladder
+    renders at ``spp`` where the scene's sampler draws independent samples
+    (:func:`_equal_rays` scales their error by 1/N), else K renders at N·spp."""
+    rung = ctx.stacks[spp]
+    sampler = ctx.scene.sensors()[0].sampler().class_name()
+    if against in rung and sampler == "IndependentSampler":
+        return rung[against]
+    return _renders(ctx, against, {}, spp * n, k, len(names) + i)
 
 
 def _settings(ctx, name, spp) -> Settings | None:
@@ -114,20 +164,23 @@ def _renders(ctx, name, params, spp, k, block, timed=False) -> stacks.Stack:
     return common.stream_renders(ctx, "quadrature", name, params, spp, k, block, timed)
 
 
-def _equal_rays(own, baseline, against: str, ref, n, spp) -> EqualRays:
+def _equal_rays(own, baseline, against: str, ref, n, spp, seconds: float,
+                baseline_seconds: float) -> EqualRays:
     a = metrics.net_relmse(own.images, ref.mean, ref.variance_of_mean)
-    b = metrics.net_relmse(baseline.images, ref.mean, ref.variance_of_mean)
+    # a baseline read at fewer samples: its net relMSE falls as 1/spp (module doc)
+    b = metrics.net_relmse(baseline.images, ref.mean, ref.variance_of_mean) * (
+        baseline.spp / (n * spp))
     ratio = float(a.mean() / b.mean()) if b.mean() > 0 else float("nan")
     # delta method on log(ā / b̄): var ≈ s_a²/(K ā²) + s_b²/(K b̄²)
-    k = len(a)
+    ka, kb = len(a), len(b)
     with np.errstate(divide="ignore", invalid="ignore"):
-        s = math.sqrt(a.var(ddof=1) / (k * a.mean() ** 2) + b.var(ddof=1) / (k * b.mean() ** 2))
+        s = math.sqrt(a.var(ddof=1) / (ka * a.mean() ** 2) + b.var(ddof=1) / (kb * b.mean() ** 2))
     low, high = (ratio * math.exp(-1.96 * s), ratio * math.exp(1.96 * s)) \
         if np.isfinite(s) and ratio > 0 else (float("nan"), float("nan"))
-    seconds, seconds_b = float(np.median(own.seconds)), float(np.median(baseline.seconds))
     return EqualRays(baseline=against, baseline_spp=n * spp, relmse=float(a.mean()),
                      baseline_relmse=float(b.mean()), ratio=ratio, ratio_low=low, ratio_high=high,
-                     seconds=seconds, baseline_seconds=seconds_b)
+                     seconds=seconds, baseline_seconds=baseline_seconds,
+                     baseline_read_at=baseline.spp)
 
 
 def _bias(stack, ref, n) -> BiasAtN:
