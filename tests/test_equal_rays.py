@@ -52,8 +52,8 @@ def test_the_baseline_read_at_the_ladder_agrees_with_one_rendered_at_n_spp(llvm,
     assert law.baseline == BASELINE and law.baseline_spp == 64 * 16
     assert law.baseline_read_at == 16
 
-    def rendered(ctx, against, n, spp, k, i, names):
-        return quadrature._renders(ctx, against, {}, spp * n, k, len(names) + i)
+    def rendered(ctx, against, rays, spp, k, block):
+        return quadrature._renders(ctx, against, {}, rays, k, block)
     monkeypatch.setattr(quadrature, "_baseline", rendered)
     ctx = _stage(tmp_path / "rendered", "lone_sphere")
     direct = ctx.quadrature[SET].equal_rays

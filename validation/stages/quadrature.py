@@ -82,20 +82,20 @@ def measure(ctx) -> None:
         return
     spp, k = ctx.plan.ladder[-1], ctx.plan.renders
     ref = ctx.reference
-    seconds = _timings(ctx, names, spp)
-    baselines = {}                  # (baseline, N·spp) → its stack: one per scene
-    for i, name in enumerate(names):
+    groups = _pairs(ctx, names, spp)
+    seconds = _timings(ctx, groups, spp)
+    # (baseline, N·spp) → the stack its error is read from: one per scene
+    baselines = {pair: _baseline(ctx, *pair, spp, k, len(names) + names.index(members[0]))
+                 for pair, members in groups.items()}
+    for name in names:
         n = ctx.integrators[name].made.directions
         # the ladder's top rung: what K fresh renders at spp would be
         own = ctx.stacks[spp][name]
         # (the Monte Carlo estimator its registry facts name)
         against = registry.facts(name).equal_rays_baseline
-        rays = None
-        if against in registry.names():
-            if (against, n * spp) not in baselines:
-                baselines[against, n * spp] = _baseline(ctx, against, n, spp, k, i, names)
-            rays = _equal_rays(own, baselines[against, n * spp], against, ref, n, spp,
-                               seconds[name], seconds[against, n * spp])
+        rays = (_equal_rays(own, baselines[against, n * spp], against, ref, n, spp,
+                            seconds[name], seconds[against, n * spp])
+                if (against, n * spp) in baselines else None)
         bias, calibration = None, None
         if not registry.facts(name).unbiased:
             bias = [_bias(own, ref, n)]
@@ -111,17 +111,23 @@ def measure(ctx) -> None:
                                           settings=_settings(ctx, name, spp))
 
 
-def _timings(ctx, names, spp) -> dict:
-    """Median seconds of TIMED renders: per point-set estimator at ``spp``
-    (by name) and per baseline at N·spp (by (baseline, N·spp)), each
-    baseline timed once with the estimators compared with it, interleaved
-    and timed alone (executors.py)."""
+def _pairs(ctx, names, spp) -> dict:
+    """(baseline, N·spp) → the point-set estimators compared with it, for
+    those whose facts name a registered baseline."""
     groups: dict = {}
     for name in names:
         against = registry.facts(name).equal_rays_baseline
         if against in registry.names():
             n = ctx.integrators[name].made.directions
             groups.setdefault((against, n * spp), []).append(name)
+    return groups
+
+
+def _timings(ctx, groups: dict, spp) -> dict:
+    """Median seconds of TIMED renders: per point-set estimator at ``spp``
+    (by name) and per baseline at N·spp (by (baseline, N·spp)), each
+    baseline of ``groups`` (:func:`_pairs`) timed once with the estimators
+    compared with it, interleaved and timed alone (executors.py)."""
     out = {}
     for g, ((against, rays), members) in enumerate(groups.items()):
         made = {m: ctx.integrators[m] for m in members}
@@ -135,15 +141,16 @@ def _timings(ctx, names, spp) -> dict:
     return out
 
 
-def _baseline(ctx, against: str, n: int, spp: int, k: int, i: int, names) -> stacks.Stack:
-    """The stack the baseline's error at N·spp is read from: its ladder
-    renders at ``spp`` where the scene's sampler draws independent samples
-    (:func:`_equal_rays` scales their error by 1/N), else K renders at N·spp."""
+def _baseline(ctx, against: str, rays: int, spp: int, k: int, block: int) -> stacks.Stack:
+    """The stack the baseline's error at ``rays`` = N·spp is read from: its
+    ladder renders at ``spp`` where the scene's sampler draws independent
+    samples (:func:`_equal_rays` scales their error by 1/N), else K renders
+    at N·spp from block ``block`` of the quadrature stream."""
     rung = ctx.stacks[spp]
     sampler = ctx.scene.sensors()[0].sampler().class_name()
     if against in rung and sampler == "IndependentSampler":
         return rung[against]
-    return _renders(ctx, against, {}, spp * n, k, len(names) + i)
+    return _renders(ctx, against, {}, rays, k, block)
 
 
 def _settings(ctx, name, spp) -> Settings | None:
