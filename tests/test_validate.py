@@ -1,5 +1,6 @@
 """`mcillum validate`: verdicts, outputs, schema, resume and the reference cache."""
 
+import dataclasses
 import json
 import os
 import re
@@ -200,6 +201,46 @@ def test_a_slope_is_as_uncertain_as_its_rungs():
         scene_checks.decide_convergence(c, resolved=True)
         assert abs(c.slope + 0.77) < 1e-6 and c.outcome == outcome, c
     assert scene.convergence_fit(tailed).low < -1 + 0.15 < scene.convergence_fit(tame).low
+
+
+def test_rungs_within_twice_the_references_share_are_left_out():
+    """A ladder of slope −1 whose top rungs fall to the reference's share:
+    net of the share they read as a line of slope −1 only if the share is
+    exact, and the share is one realisation, shared by every render. The
+    rungs within 2× of it are left out of the fit (its slope stays −1 on
+    the rungs above); the share 10 % off bends a fit of all five rungs."""
+    from mcillum.validation.stages import scene
+    spp = (4, 16, 64, 256, 1024)
+    share = 5e-4
+    truth = [0.1 * 4 / s for s in spp]                 # net relMSE, slope −1
+    # the share realised 10 % above its estimate: each rung's measured relMSE
+    rungs = [dataclasses.replace(_rung(s, [t + 1.1 * share] * 8), reference_relmse=share)
+             for s, t in zip(spp, truth)]
+    kept = [r.spp for r in rungs if r.relmse > 2 * share]
+    assert kept == [4, 16, 64, 256], kept
+    slope = scene.convergence_fit(rungs).slope
+    everything = scene.statistics.loglog_fit(spp, [r.relmse - share for r in rungs], 0.05)[0]
+    # (what all five rungs read is further from −1)
+    assert abs(slope + 1) < 0.01 and everything > slope + 0.01, (slope, everything)
+
+
+def test_a_reference_target_resolves_the_checks_not_a_quadrature():
+    """references.target_for: 0.1 of the least noisy stack's RMSE, squared;
+    with the checks' ε, no finer than a tenth of ε of the image's rms (a
+    stack 10⁴× less noisy than the others no longer sets it); never coarser
+    than a tenth of the variance of a stack that carries error bars."""
+    from mcillum.validation.run import references
+    rng = np.random.default_rng(5)
+    image = np.full((8, 8, 3), 0.5)
+    noisy = image + rng.normal(0, 0.1, (16, 8, 8, 3))        # variance 1e-2
+    exact = image + rng.normal(0, 1e-3, (16, 8, 8, 3))       # variance 1e-6
+    old = references.target_for([noisy, exact], 0.1)
+    assert old == pytest.approx(1e-8, rel=0.4)
+    floor = (0.1 * 0.02) ** 2 * 0.25                          # 1e-6
+    assert references.target_for([noisy, exact], 0.1, 0.02) == pytest.approx(floor, rel=0.01)
+    assert references.target_for([noisy], 0.1, 0.02) == pytest.approx(1e-4, rel=0.4)
+    bars = references.target_for([noisy, exact], 0.1, 0.02, [exact])
+    assert bars == pytest.approx(1e-7, rel=0.4) and bars < floor
 
 
 def test_biased_estimator_fails_with_exit_1(llvm, tiny_profile, tmp_path, capsys):

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..stats import metrics
 from .evidence import TAIL_EVENTS
 
 #: The slope Monte Carlo's relMSE follows against spp.
@@ -45,7 +46,8 @@ def convergence_outcome(c, resolved: bool, rungs: int | None = None) -> tuple[st
         return "pass", "exact (zero variance at every spp)"
     text = f"relMSE slope {c.slope:+.2f} [{c.low:+.2f}, {c.high:+.2f}]"
     if not np.isfinite(c.low) or not np.isfinite(c.high):
-        return "inconclusive", "fewer than 3 rungs with an error above the reference's"
+        return "inconclusive", (f"fewer than 3 rungs with an error above {metrics.RESOLVED:g}× "
+                                "the reference's share")
     band = (EXPECTED_SLOPE - SLOPE_TOLERANCE, EXPECTED_SLOPE + SLOPE_TOLERANCE)
     if c.high - c.low > SLOPE_WIDTH:
         more = ""

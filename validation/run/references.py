@@ -167,14 +167,51 @@ def target_variance(min_error: float, fraction: float = 0.1) -> float:
     return (fraction * min_error) ** 2
 
 
-def target_for(stacks, fraction: float = 0.1) -> float:
+#: The reference need not resolve a relative bias finer than this share of
+#: the checks' tolerance ε ("unbiased within ±ε"): a tenth.
+RESOLUTION = 0.1
+#: Of the variance of a render that carries error bars (the ``posterior_std``
+#: AOV), the largest share the reference's variance may have: the bars'
+#: calibration compares each pixel's error with its bar, the reference's
+#: variance in both, and a larger share hides bars that are too narrow
+#: (stages/quadrature.py).
+BARS_SHARE = 0.1
+#: An error below this share of the image is float32's, not the estimator's:
+#: films summing 256 samples per pixel err by ~1e-5 (the full profile's
+#: furnace read as infinitely over-confident at 1e-5 in the calibration,
+#: stages/quadrature.py).
+EXACT = 1e-4
+
+
+def target_for(stacks, fraction: float = 0.1, epsilon: float = 0.0, bars=()) -> float:
     """:func:`target_variance` for the smallest error a reference is compared
     against: the RMSE of one render of the least noisy of ``stacks`` (each K
     independent renders, (K, H, W, C)), from its own spread. Zero-variance
-    stacks (e.g. the cosine estimator in a furnace) have no error to resolve."""
-    noise = [float(np.var(x[..., :3], axis=0, ddof=1).mean()) for x in stacks]
-    noise = [v for v in noise if v > 0]
-    return target_variance(np.sqrt(min(noise)) if noise else 0.0, fraction)
+    stacks (e.g. the cosine estimator in a furnace) have no error to resolve.
+
+    With ``epsilon`` > 0 the target is no finer than RESOLUTION · ε of the
+    image's rms (the least noisy stack's mean): an estimator whose error is
+    far below what the checks resolve (a quadrature at 2 000× less variance
+    than `path`) no longer drives the reference to its cap; its relMSE is
+    read net of the reference's share, on the rungs where it is above it.
+    It stays at most BARS_SHARE of the variance of each stack in ``bars``
+    (renders with error bars), whose calibration needs it."""
+    noise = sorted((float(np.var(x[..., :3], axis=0, ddof=1).mean()), i)
+                   for i, x in enumerate(stacks))
+    noise = [(v, i) for v, i in noise if v > 0]
+    target = target_variance(np.sqrt(noise[0][0]) if noise else 0.0, fraction)
+    if not len(stacks):
+        return target
+    least = stacks[noise[0][1] if noise else 0]
+    square = float(np.mean(np.asarray(least, np.float64)[..., :3].mean(axis=0) ** 2))
+    if epsilon > 0:
+        target = max(target, (RESOLUTION * epsilon) ** 2 * square)
+    for x in bars:
+        v = float(np.var(x[..., :3], axis=0, ddof=1).mean())
+        # (bars on an exact render, float32's error, are not calibrated: no target)
+        if v > EXACT ** 2 * square:
+            target = min(target, BARS_SHARE * v)
+    return target
 
 
 def pass_spp(smallest: int, pixels: int, max_spp: int) -> int:

@@ -135,12 +135,17 @@ def stream_renders(ctx, stream: str, name: str, params: dict, spp: int, k: int, 
 
 def build_reference(ctx) -> None:
     """`path` until its standard error is a fraction of the smallest error it is
-    compared against: the least noisy render stack of a scene comparison, or
-    `path`'s own in a failure case (where the other stacks' tails would set no
-    useful target)."""
-    found = [s.images for by_name in ctx.stacks.values() for n, s in by_name.items()
-             if not ctx.is_case or n == REFERENCE]
-    target = references.target_for(found, ctx.run.profile.reference_fraction)
+    compared against: the least noisy render stack of a scene comparison
+    (no finer than a tenth of the scene checks' ε of the image, but fine
+    enough for the error bars of renders that carry them:
+    references.target_for), or `path`'s own in a failure case (where the
+    other stacks' tails would set no useful target)."""
+    chosen = [s for by_name in ctx.stacks.values() for n, s in by_name.items()
+              if not ctx.is_case or n == REFERENCE]
+    epsilon = 0.0 if ctx.is_case else ctx.run.sequential.scene_epsilon
+    target = references.target_for([s.images for s in chosen],
+                                   ctx.run.profile.reference_fraction, epsilon,
+                                   [s.images for s in chosen if "posterior_std" in s.aovs])
     ctx.reference = references.ensure(ctx, target)
 
 

@@ -8,7 +8,8 @@ rung and resolution.
   cosine_hemisphere, or emitter_sampling for one that samples the light) at
   N·spp spp: the ratio of their relMSE (each less the reference's own
   relative variance), with a 95 % interval from the spread of the per-render
-  errors (delta method on the log). The baseline's error at N·spp is its
+  errors and the standard error of the reference's share (delta method on
+  the log). The baseline's error at N·spp is its
   ladder renders' at spp over N where the scene's sampler is independent
   (the N·spp samples of a pixel are then N independent means of spp: the
   variance of their mean is 1/N of one's, exactly), measured where the
@@ -46,18 +47,16 @@ from ..checks import convergence
 from ..results import (BiasAtN, Calibration, EqualRays, GlossySettings, Quadrature,
                        SettingScore, Settings)
 from ..plan import seeds
-from ..run import jobs, stacks
-from ..stats import metrics
+from ..run import jobs, references, stacks
+from ..stats import costs, metrics
 from . import common
 
 #: Timed renders of each estimator and baseline for the equal-ray pair's seconds.
 TIMED = 3
 #: The N of the bias-against-N measurement (the default N is added).
 BIAS_DIRECTIONS = (16, 256)
-#: Errors below this share of the reference count as exact: float32 films
-#: summing 256 samples per pixel err by ~1e-5 (the full profile's furnace
-#: read as infinitely over-confident at 1e-5).
-EXACT = 1e-4
+#: Errors below this share of the reference count as exact (run/references).
+EXACT = references.EXACT
 
 
 def is_point_set(name: str) -> bool:
@@ -175,13 +174,17 @@ def _equal_rays(own, baseline, against: str, ref, n, spp, seconds: float,
                 baseline_seconds: float) -> EqualRays:
     a = metrics.net_relmse(own.images, ref.mean, ref.variance_of_mean)
     # a baseline read at fewer samples: its net relMSE falls as 1/spp (module doc)
-    b = metrics.net_relmse(baseline.images, ref.mean, ref.variance_of_mean) * (
-        baseline.spp / (n * spp))
+    scale = baseline.spp / (n * spp)
+    b = metrics.net_relmse(baseline.images, ref.mean, ref.variance_of_mean) * scale
     ratio = float(a.mean() / b.mean()) if b.mean() > 0 else float("nan")
-    # delta method on log(ā / b̄): var ≈ s_a²/(K ā²) + s_b²/(K b̄²)
+    # delta method on log(ā / b̄): var ≈ var(ā)/ā² + var(b̄)/b̄², each mean's
+    # variance its renders' spread over K and the reference share's own (the
+    # share subtracted is an estimate: it matters where the error is near it)
+    share = costs.reference_share(ref.mean, ref.variance_of_mean, ref.passes).se
     ka, kb = len(a), len(b)
     with np.errstate(divide="ignore", invalid="ignore"):
-        s = math.sqrt(a.var(ddof=1) / (ka * a.mean() ** 2) + b.var(ddof=1) / (kb * b.mean() ** 2))
+        s = math.sqrt((a.var(ddof=1) / ka + share ** 2) / a.mean() ** 2 +
+                      (b.var(ddof=1) / kb + (share * scale) ** 2) / b.mean() ** 2)
     low, high = (ratio * math.exp(-1.96 * s), ratio * math.exp(1.96 * s)) \
         if np.isfinite(s) and ratio > 0 else (float("nan"), float("nan"))
     return EqualRays(baseline=against, baseline_spp=n * spp, relmse=float(a.mean()),

@@ -207,7 +207,7 @@ def _kind(name: str, run: BudgetRun, share: costs.Share) -> str:
     """What the estimator's efficiency figure means (results.KINDS)."""
     if not registry.facts(name).unbiased:
         return "biased"
-    return "reference_limited" if run.relmse < 2 * share.value else "unbiased"
+    return "reference_limited" if run.relmse < metrics.RESOLVED * share.value else "unbiased"
 
 
 def _load(ctx) -> tuple[float | None, int, bool]:

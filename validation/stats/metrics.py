@@ -27,6 +27,11 @@ import numpy as np
 
 EPSILON = 0.01
 
+#: A relMSE counts as resolved from the reference's own noise above this
+#: multiple of the reference's share (:func:`reference_relmse`); within it
+#: the reference limits the figure.
+RESOLVED = 2.0
+
 #: What each number of results.json means, written into it (``definitions``).
 DEFINITIONS = {
     "mse": "mean over pixels and channels of (x - r)^2",
