@@ -26,7 +26,7 @@ from mcillum.validation.stages import budgets, common
 from mcillum.validation.stages.context import Context, Run
 
 import twins
-from conftest import disagreements
+from conftest import SCENES, disagreements
 from test_profile_files import dump
 
 # A small profile for tests: the two analytic scenes, few rungs.
@@ -397,6 +397,23 @@ def test_capped_reference_is_not_chased_again_by_a_rerun(llvm, tmp_path):
     assert again.passes == first.passes
     stricter = references.ensure(ctx, 1e-13)
     assert stricter.meta["rendered_passes"] > 0 and stricter.passes > first.passes
+
+
+def test_kept_renders_do_not_hang_on_the_reference_code(llvm, monkeypatch):
+    """A change in how references are made (references.py) changes the
+    reference cache's key but not the key of the estimators' kept renders
+    (render_key); a change in the renderer changes both."""
+    import types
+    args = (str(SCENES / "furnace_sphere.xml"), {"res": 8}, {"max_depth": 2}, "llvm_ad_rgb")
+    before = references.cache_key(*args), references.render_key(*args)
+    edited = types.ModuleType("edited_references")
+    edited.__file__ = __file__                       # another source, as an edit would be
+    modules = references._filled_by()
+    monkeypatch.setattr(references, "_filled_by", lambda: (edited, *modules[1:]))
+    after = references.cache_key(*args), references.render_key(*args)
+    assert after[0] != before[0] and after[1] == before[1]
+    monkeypatch.setattr(references, "_filled_by", lambda: (modules[0], edited, *modules[2:]))
+    assert references.render_key(*args) != before[1]
 
 
 def test_corrupt_cache_entry_is_rendered_anew(llvm, tmp_path):

@@ -98,8 +98,18 @@ def _filled_by():
     return (sys.modules[__name__], renders, passes, phong)
 
 
+def _renders_by():
+    """The modules whose code decides an estimator's kept renders: the
+    renderer, the pass splitter and mcillum's own BSDF (not this module: a
+    change in how references are made keeps the estimators' renders)."""
+    return _filled_by()[1:]
+
+
 def cache_key(scene_path: str, defines: dict, params: dict, variant: str,
-              film: tuple[int, int] | None = None) -> str:
+              film: tuple[int, int] | None = None, code=None) -> str:
+    """A hash of everything that decides a reference of the scene: its files'
+    bytes, $-parameters, integrator parameters, variant, versions and the
+    code of ``code`` (default: the modules that fill a reference)."""
     h = hashlib.sha256()
     for path in scenes.referenced_files(scene_path, defines):
         h.update(os.path.basename(path).encode())
@@ -108,13 +118,20 @@ def cache_key(scene_path: str, defines: dict, params: dict, variant: str,
     desc = {"defines": {k: v for k, v in defines.items() if k != "envmap"},
             "params": params, "variant": variant, "mitsuba": mi.__version__,
             "drjit": dr.__version__, "integrator": "path", "format": FORMAT_VERSION,
-            "code": files.code_hash(*_filled_by())}
+            "code": files.code_hash(*(code if code is not None else _filled_by()))}
     if film is not None:                  # a user's scene at a reduced film
         desc["film"] = list(film)
     if seeds.seed_set():                  # another independent repeat (plan/seeds.py)
         desc["seed_set"] = seeds.seed_set()
     h.update(json.dumps(desc, sort_keys=True, default=str).encode())
     return h.hexdigest()[:32]
+
+
+def render_key(scene_path: str, defines: dict, params: dict, variant: str,
+               film: tuple[int, int] | None = None) -> str:
+    """:func:`cache_key` over the code of an estimator's renders only: the
+    key of the renders a run directory keeps (run/stacks.py)."""
+    return cache_key(scene_path, defines, params, variant, film, _renders_by())
 
 
 # ------------------------------ Cache files ----------------------------------

@@ -74,7 +74,7 @@ def _key(ctx, names, spp: dict, seed_list, tag: str) -> str:
     their parameters, spp, seeds."""
     opted = sorted(ctx.refused)             # rendered with allow_unreachable
     return hashlib.sha256(json.dumps(
-        [ctx.scene_key, list(names), opted, spp, list(seed_list), tag, FORMAT]).encode()
+        [ctx.render_key, list(names), opted, spp, list(seed_list), tag, FORMAT]).encode()
     ).hexdigest()[:24]
 
 

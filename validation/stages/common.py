@@ -49,6 +49,8 @@ def load(ctx) -> None:
                       or {"max_depth": ctx.max_depth})
     ctx.scene_key = references.cache_key(info.path, ctx.resolved, ctx.params,
                                          ctx.run.variant, film=film)
+    ctx.render_key = references.render_key(info.path, ctx.resolved, ctx.params,
+                                           ctx.run.variant, film=film)
     ctx.scene_spec = jobs.SceneSpec(os.path.abspath(info.path),
                                     tuple(sorted(ctx.resolved.items())), ctx.scene_key, film)
 

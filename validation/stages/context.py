@@ -69,6 +69,7 @@ class Context:
     resolved: dict = None           # load: $-parameters as Mitsuba gets them
     scene: object = None            # load: the mi.Scene
     scene_key: str = ""             # load: content hash (run.references.cache_key)
+    render_key: str = ""            # load: the same over the renders' code (its kept renders)
     scene_spec: object = None       # load: run.jobs.SceneSpec, the scene as a worker loads it
     params: dict = None             # load: integrator properties ({"max_depth": d})
     #: choose_estimators / probe_refusals: name → jobs.Integrator

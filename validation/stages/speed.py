@@ -300,7 +300,7 @@ def release_display(ctx) -> None:
 def _cache_file(ctx) -> tuple[str, str]:
     sub, d = ctx.display, ctx.plan.display
     key = hashlib.sha256(json.dumps(
-        [sub.scene_key, list(sub.integrators), dataclasses.asdict(d), PILOT_SPP,
+        [sub.render_key, list(sub.integrators), dataclasses.asdict(d), PILOT_SPP,
          MAX_SCALE, MIN_SPP, MIN_BUDGET, CACHE_VERSION]).encode()).hexdigest()[:24]
     return layout.kept_renders(ctx.run.out_dir, ctx.id, "speed"), key
 
