@@ -412,7 +412,8 @@ def test_kept_renders_do_not_hang_on_the_reference_code(llvm, monkeypatch):
     monkeypatch.setattr(references, "_filled_by", lambda: (edited, *modules[1:]))
     after = references.cache_key(*args), references.render_key(*args)
     assert after[0] != before[0] and after[1] == before[1]
-    monkeypatch.setattr(references, "_filled_by", lambda: (modules[0], edited, *modules[2:]))
+    rendered_by = references._renders_by()
+    monkeypatch.setattr(references, "_renders_by", lambda: (edited, *rendered_by[1:]))
     assert references.render_key(*args) != before[1]
 
 

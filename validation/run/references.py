@@ -35,6 +35,7 @@ import numpy as np
 from mcillum import files
 
 from ..plan import scenes, seeds
+from ..stats import metrics
 from ..stats.statistics import Moments
 from . import jobs, renders
 
@@ -88,21 +89,21 @@ class Reference:
 
 # ------------------------------- Cache key -----------------------------------
 
-def _filled_by():
-    """The modules whose code decides a cached reference: this one (passes,
-    precision), the renderer, the pass splitter, and mcillum's own BSDF,
-    which scenes may use (Mitsuba's code is keyed by its version)."""
-    import sys
-
-    from mcillum.integrators import passes, phong
-    return (sys.modules[__name__], renders, passes, phong)
-
-
 def _renders_by():
     """The modules whose code decides an estimator's kept renders: the
-    renderer, the pass splitter and mcillum's own BSDF (not this module: a
+    renderer, the pass splitter and mcillum's own BSDF, which scenes may use
+    (Mitsuba's code is keyed by its version)."""
+    from mcillum.integrators import passes, phong
+    return (renders, passes, phong)
+
+
+def _filled_by():
+    """The modules whose code decides a cached reference: this one (passes,
+    precision) and those of :func:`_renders_by` (not the other way round: a
     change in how references are made keeps the estimators' renders)."""
-    return _filled_by()[1:]
+    import sys
+
+    return (sys.modules[__name__], *_renders_by())
 
 
 def cache_key(scene_path: str, defines: dict, params: dict, variant: str,
@@ -213,8 +214,7 @@ def target_for(stacks, fraction: float = 0.1, epsilon: float = 0.0, bars=()) -> 
     read net of the reference's share, on the rungs where it is above it.
     It stays at most BARS_SHARE of the variance of each stack in ``bars``
     (renders with error bars), whose calibration needs it."""
-    noise = sorted((float(np.var(x[..., :3], axis=0, ddof=1).mean()), i)
-                   for i, x in enumerate(stacks))
+    noise = sorted((metrics.variance_per_render(x[..., :3]), i) for i, x in enumerate(stacks))
     noise = [(v, i) for v, i in noise if v > 0]
     target = target_variance(np.sqrt(noise[0][0]) if noise else 0.0, fraction)
     if not len(stacks):
@@ -224,7 +224,7 @@ def target_for(stacks, fraction: float = 0.1, epsilon: float = 0.0, bars=()) -> 
     if epsilon > 0:
         target = max(target, (RESOLUTION * epsilon) ** 2 * square)
     for x in bars:
-        v = float(np.var(x[..., :3], axis=0, ddof=1).mean())
+        v = metrics.variance_per_render(x[..., :3])
         # (bars on an exact render, float32's error, are not calibrated: no target)
         if v > EXACT ** 2 * square:
             target = min(target, BARS_SHARE * v)

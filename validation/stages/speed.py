@@ -184,7 +184,8 @@ def measure_speed(ctx) -> None:
                                 min(len(run.relmse_per_render), len(base.relmse_per_render)))
         ratios[n] = Ratio(ratio=ratio, ci=ci, kind=_kind(n, run, share))
         if ratios[n].kind == "reference_limited":
-            ctx.notes.append(f"{n}: its relMSE {run.relmse:.3g} is within 2× of the "
+            ctx.notes.append(f"{n}: its relMSE {run.relmse:.3g} is within "
+                             f"{metrics.RESOLVED:g}× of the "
                              f"reference's own share {share.value:.3g}: the reference "
                              "limits it, and its efficiency is a lower bound")
     ranking = costs.ranking({n: (e.value, e.ci) for n, e in eff.items()})
