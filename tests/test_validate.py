@@ -132,9 +132,9 @@ def assert_ranking_follows_the_intervals(speed):
         assert set(p["tied_with"]) == set(ci) - set(above) - set(below) - {p["estimator"]}
 
 
-def convergence_of(tmp_path, estimator):
+def convergence_of(tmp_path, estimator, *extra):
     code, out = run_cli(tmp_path, "--scenes", "cap_plane", "--estimators", estimator,
-                        "--no-speed")
+                        "--no-speed", *extra)
     return json.loads((out / "results.json").read_text())["scenes"][0]["estimators"][0][
         "convergence"]
 
@@ -158,6 +158,27 @@ def test_convergence_check_fails_an_error_that_stops_shrinking(llvm, tiny_profil
     mi.register_integrator("cosine_pdf_x1.5", lambda props, cls=cls: cls(props))
     c = convergence_of(tmp_path, "cosine_pdf_x1.5")
     assert not c["consistent_with_mc"] and c["outcome"] == "fail", c
+
+
+def test_a_slope_the_ladder_cannot_decide_is_rendered_on(llvm, monkeypatch, tmp_path):
+    """Two renders per rung of one pixel leave uniform sampling's slope on
+    cap_plane too uncertain to decide (the precondition, read with --budget
+    1: no look allowed, inconclusive, "budget spent"). With the scene's
+    budget the fit adds renders to every rung, doubling them at each look,
+    from the rung's own seed block, until it decides: a pass, consistent
+    with −1, on the renders it says."""
+    two = profiles.Profile(name="quick", runs=(
+        dataclasses.replace(TINY.runs[1], res=1, renders=2),), reference_max_seconds=20.0)
+    monkeypatch.setitem(profiles.PROFILES, "quick", two)
+    first = convergence_of(tmp_path / "one", "uniform_hemisphere", "--budget", "1")
+    assert first["outcome"] == "inconclusive" and first["looks"] == 0, first
+    assert "budget spent: 2 renders per rung" in first["message"], first
+    c = convergence_of(tmp_path / "on", "uniform_hemisphere")
+    assert c["looks"] >= 1 and c["renders"] == 2 * 2 ** c["looks"] <= c["budget_renders"], c
+    assert c["outcome"] == "pass" and c["low"] <= -1 <= c["high"], c
+    assert f"after {c['looks']} more look" in c["message"], c
+    kept = os.listdir(tmp_path / "on" / "out" / "renders" / "cap_plane")
+    assert sum("uniform_hemisphere-look" in f for f in kept) == 4 * c["looks"], kept
 
 
 def test_too_few_rungs_claim_nothing(llvm):

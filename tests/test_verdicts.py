@@ -247,6 +247,45 @@ def test_a_slope_too_wide_on_a_short_ladder_asks_for_more_rungs():
     assert "a longer ladder" not in convergence.convergence_outcome(wide, True)[1]
 
 
+def test_a_fail_after_more_looks_reads_the_level_spent_on_that_look():
+    """The sequential fit (stages/scene.py: settle_convergence) may look
+    again; a fail at look j reads its interval at α_j (Σ α_j = α): a slope
+    slower than −0.85 at 95 % whose interval at α_j reaches the band is not
+    yet a fail, and one above it at α_j is."""
+    from dataclasses import replace
+    slow = conv(-0.5, -0.7, -0.3)
+    assert convergence.convergence_outcome(replace(slow, low_spent=-0.75), True)[0] == "fail"
+    outcome, text = convergence.convergence_outcome(replace(slow, low_spent=-0.9), True)
+    assert outcome == "inconclusive" and "not at the level a fail" in text, text
+
+
+def test_a_fit_more_renders_may_decide_says_when_its_budget_is_spent():
+    """More renders per rung may decide a fit that is too wide or far from
+    −1; not one with fewer than 3 rungs above the reference's share, nor one
+    wholly steeper than −1.15 (the reference's noise), nor an exact one. An
+    undecided fit whose budget is spent says so, and how many renders it
+    read."""
+    from dataclasses import replace
+    nan, inf = float("nan"), float("inf")
+    wide = conv(-0.77, -1.74, 0.20)
+    assert convergence.more_renders_decide(wide)
+    assert convergence.more_renders_decide(conv(-0.48, -0.90, -0.05))
+    assert not convergence.more_renders_decide(conv(nan, -inf, inf))
+    assert not convergence.more_renders_decide(conv(-1.6, -1.8, -1.4))
+    assert not convergence.more_renders_decide(conv(nan, nan, nan, True))
+    spent = replace(wide, looks=2, renders=64, budget_renders=64)
+    outcome, text = convergence.convergence_outcome(spent, True)
+    assert outcome == "inconclusive" and "budget spent: 64 renders per rung" in text, text
+    assert "after 2 more looks" in text
+    assert "budget" not in convergence.convergence_outcome(wide, True)[1]
+    # (1.94 wide on 16 renders: about 60 would narrow it to 1, as 1/√renders)
+    far = replace(wide, renders=16, budget_renders=32)
+    assert convergence.renders_to_decide(far) == pytest.approx(16 * 1.94 ** 2)
+    outcome, text = convergence.convergence_outcome(far, True)
+    assert outcome == "inconclusive" and "about 60 renders per rung" in text, text
+    assert convergence.renders_to_decide(conv(-1.0, -1.2, -0.8)) == 0
+
+
 def test_convergence_of_exact_and_unmeasurable_estimators():
     nan, inf = float("nan"), float("inf")
     assert convergence.convergence_outcome(conv(nan, nan, nan, True), False)[0] == "pass"

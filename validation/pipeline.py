@@ -5,7 +5,8 @@ For every scene of a profile and every case of its failures group, a
 below), then the checks decide (:mod:`.checks`):
 
     scene comparison   load → choose estimators → K renders per rung of an spp
-                       ladder → reference → measure → settle (sequential) →
+                       ladder → reference → measure → settle (sequential:
+                       unbiasedness, then convergence) →
                        quadrature (estimators of N directions: equal rays, bias
                        against N, calibration) → learning (estimators that
                        learn their pdf, where the plan asks: error against
@@ -60,8 +61,9 @@ from .stages.context import Context, Run
 from .stats import metrics, statistics
 
 SCENE = (common.load, common.choose_estimators, scene.render_ladder, common.build_reference,
-         scene.measure, scene.settle, sun_split.note_unsplit_sun, quadrature.measure,
-         learning.measure, common.release, scene.save_images, sun_split.sunless_twin)
+         scene.measure, scene.settle, scene.settle_convergence, sun_split.note_unsplit_sun,
+         quadrature.measure, learning.measure, common.release, scene.save_images,
+         sun_split.sunless_twin)
 SPEED = (speed.display, speed.time_costs, speed.render_budgets, speed.display_reference,
          speed.release_display, speed.measure_speed, speed.save_display)
 CASE = (common.load, cases.probe_refusals, cases.render_seeds, common.build_reference,

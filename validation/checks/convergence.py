@@ -32,16 +32,57 @@ def convergence_outcome(c, resolved: bool, rungs: int | None = None) -> tuple[st
     within twice that of −1 (consistent with Monte Carlo, not merely not
     excluding it); fail when it is that narrow and lies wholly above
     −1 + SLOPE_TOLERANCE (too slow: a bias, or an error that does not fall)
-    and the estimator's tail is resolved (``resolved``:
-    Evidence.tail_resolved; an unseen tail flattens a slope); inconclusive
-    otherwise (too wide, an unresolved tail, far from −1, or steeper).
-    Too wide on a ladder of three ``rungs``, the message says that more
-    would narrow it: the line's t quantile has n − 2 degrees of freedom
-    (12.7 at 3 rungs, 3.2 at 5), and a learner's error, falling faster as
-    it learns more, is not quite a line (a user's guided_path: 1.08 wide on
-    3 rungs whatever the renders per rung, 0.42 on 5; docs/measurements.md,
-    2026-12-03). On four, a heavy tail's rung variance may be what widens
-    it (cosine on probe_spheres), and the message does not guess."""
+    at the level a fail at its look reads (``c.low_spent``, the α spent on
+    that look: stages/sequential.level), and the estimator's tail is
+    resolved (``resolved``: evidence.tail_resolved; an unseen tail flattens
+    a slope); inconclusive otherwise (too wide, an unresolved tail, far from
+    −1, or steeper). Too wide on a ladder of three ``rungs``, the message says
+    that more would narrow it: the line's t quantile has n − 2 degrees of
+    freedom (12.7 at 3 rungs, 3.2 at 5), and a learner's error, falling
+    faster as it learns more, is not quite a line (a user's guided_path: 1.08
+    wide on 3 rungs whatever the renders per rung, 0.42 on 5;
+    docs/measurements.md, 2026-12-03). Where the fit was continued on more
+    renders per rung (``c.looks``), the message says on how many, and an
+    inconclusive one that more would decide says that its budget is spent."""
+    outcome, message = _outcome(c, resolved, rungs)
+    if c.looks:
+        message += (f" (on {c.renders} renders per rung, after {c.looks} more "
+                    + ("look)" if c.looks == 1 else "looks)"))
+    if outcome == "inconclusive" and c.budget_renders and more_renders_decide(c):
+        need, spent = renders_to_decide(c), 2 * c.renders > c.budget_renders
+        if spent:
+            message += f"; budget spent: {c.renders} renders per rung"
+        if need > c.budget_renders:
+            message += (f"{',' if spent else ';'} about {need:.2g} renders per rung would "
+                        f"narrow it to {SLOPE_WIDTH} (as 1/√renders)"
+                        + ("" if spent else f", beyond the budget's {c.budget_renders}: "
+                           "not rendered"))
+        elif not spent:
+            message += "; budget not spent"
+        elif spent:
+            message += ", and --budget twice this one's renders twice as many"
+    return outcome, message
+
+
+def renders_to_decide(c) -> float:
+    """Renders per rung at which an interval wider than SLOPE_WIDTH would
+    be that wide, narrowing as 1/√renders (a heavy tail's narrows slower:
+    the count is a floor); 0 for one not too wide."""
+    width = c.high - c.low
+    return c.renders * (width / SLOPE_WIDTH) ** 2 if width > SLOPE_WIDTH else 0.0
+
+
+def more_renders_decide(c) -> bool:
+    """Whether more renders per rung may decide an undecided fit: its interval
+    is finite (at least 3 rungs above the reference's share) and not wholly
+    steeper than −1 − SLOPE_TOLERANCE (the reference's noise bends the top
+    rungs there, and more renders of the estimator do not remove it)."""
+    return (not c.exact and np.isfinite(c.low) and np.isfinite(c.high)
+            and c.high >= EXPECTED_SLOPE - SLOPE_TOLERANCE)
+
+
+def _outcome(c, resolved: bool, rungs: int | None) -> tuple[str, str]:
+    """:func:`convergence_outcome` without the sequential fit's words."""
     if c.exact:
         return "pass", "exact (zero variance at every spp)"
     text = f"relMSE slope {c.slope:+.2f} [{c.low:+.2f}, {c.high:+.2f}]"
@@ -56,10 +97,15 @@ def convergence_outcome(c, resolved: bool, rungs: int | None = None) -> tuple[st
                     "(more spp in the profile's ladder) would narrow it")
         return "inconclusive", f"{text}: wider than {SLOPE_WIDTH} (the ladder cannot decide{more})"
     if c.low > band[1]:
+        spent = c.low if c.low_spent is None else c.low_spent
         if not resolved:
             return "inconclusive", (f"{text}: slower than {EXPECTED_SLOPE:+.0f}, but its tail "
                                     f"is unresolved (fewer than {TAIL_EVENTS:.0f} fireflies per "
                                     "pixel that holds one: an unseen tail flattens the slope)")
+        if spent <= band[1]:
+            return "inconclusive", (f"{text}: slower than {EXPECTED_SLOPE:+.0f} ± "
+                                    f"{SLOPE_TOLERANCE}, but not at the level a fail at this "
+                                    f"look reads (its interval reaches {spent:+.2f})")
         return "fail", f"{text}: slower than {EXPECTED_SLOPE:+.0f} ± {SLOPE_TOLERANCE}"
     if c.high < band[0]:
         return "inconclusive", (f"{text}: steeper than {EXPECTED_SLOPE:+.0f} ± "

@@ -326,10 +326,16 @@ class Evidence:
 
     @property
     def tail_resolved(self) -> bool:
-        """No firefly, or as many per pixel that holds one as a test needs
-        to see a tail (:data:`TAIL_EVENTS`): one firefly is no evidence."""
-        held = int((self.events > 0).sum())
-        return held == 0 or self.events.sum() >= TAIL_EVENTS * held
+        """:func:`tail_resolved` of its fireflies."""
+        return tail_resolved(self.events)
+
+
+def tail_resolved(events: np.ndarray) -> bool:
+    """No firefly in ``events`` (per pixel), or as many per pixel that holds
+    one as a test needs to see a tail (:data:`TAIL_EVENTS`): one firefly is
+    no evidence."""
+    held = int((events > 0).sum())
+    return held == 0 or events.sum() >= TAIL_EVENTS * held
 
 
 @dataclass(kw_only=True)

@@ -69,7 +69,9 @@ def split_decision(d: evidence.Decision, s, samples: int) -> evidence.Decision:
 
 def decide_convergence(c: Convergence, resolved: bool, rungs: int | None = None) -> None:
     """The verdict of :func:`convergence.convergence_outcome`, written into
-    ``c`` (``rungs``: the ladder's)."""
+    ``c`` (``rungs``: the ladder's; ``resolved``: the ladder's tail, unless
+    the sequential fit read the tail of all its renders)."""
+    resolved = resolved if c.tail_resolved is None else c.tail_resolved
     c.outcome, c.message = convergence.convergence_outcome(c, resolved, rungs)
     c.passed = c.outcome == "pass"
 

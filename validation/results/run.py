@@ -45,7 +45,10 @@ VERSION = 1
 #: 15: a quadrature estimator's ``equal_rays`` may carry ``baseline_read_at``:
 #: the spp at which the baseline's error was measured (the ladder's top rung,
 #: scaled by 1/N, where the scene's sampler is independent).
-MINOR_VERSION = 15
+#: 16: a convergence record may carry ``looks``, ``renders``,
+#: ``budget_renders``, ``low_spent`` and ``tail_resolved``: the fit continued
+#: on more renders per rung where the ladder could not decide it.
+MINOR_VERSION = 16
 
 
 @dataclass(kw_only=True)

@@ -82,6 +82,16 @@ class Convergence(Outcome):
     passed: bool
     outcome: str = ""               # checks.convergence.convergence_outcome (minor version 3)
     message: str = ""
+    #: The sequential fit (minor version 16, stages/scene.py: settle_convergence):
+    #: looks after the ladder, renders per rung in the fit, the most renders
+    #: per rung the budget allows (0: none ran), the interval's lower end at
+    #: the level a fail at that look reads (sequential.level), and whether the
+    #: fireflies of all its renders resolve the tail (None: not read yet).
+    looks: int = 0
+    renders: int = 0
+    budget_renders: int = 0
+    low_spent: float | None = optional()
+    tail_resolved: bool | None = optional()
 
 
 @dataclass(kw_only=True)

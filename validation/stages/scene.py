@@ -24,6 +24,7 @@ is mostly its fixed cost.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 
 import numpy as np
@@ -36,7 +37,7 @@ from ..results import Convergence, EstimatorResult, RunStats, SceneResult, Unbia
 from ..run import stacks
 from ..stats import metrics, statistics, tails
 from . import sequential
-from .common import REFERENCE, compile_kernels, reference_summary, scene_summary
+from .common import REFERENCE, compile_kernels, kept_file, reference_summary, scene_summary
 
 ALPHA = statistics.ALPHA
 
@@ -125,12 +126,14 @@ def unbiasedness_record(found: evidence.Evidence, top: int) -> Unbiasedness:
                         samples_per_pixel=found.samples)
 
 
-def convergence_fit(runs: list[RunStats], alpha: float = 0.05) -> Convergence:
+def convergence_fit(runs: list[RunStats], alpha: float = 0.05, look: int = 0) -> Convergence:
     """Slope of log (relMSE − the reference's share) against log spp, with its
-    (1 − α) interval; its outcome is decided by checks/scene.py. An estimator
-    with zero variance at every spp is exact. With fewer than 3 usable rungs
-    the interval is unbounded and nothing is claimed. Rungs whose relMSE is
-    within metrics.RESOLVED× the reference's share are left out."""
+    (1 − α) interval and, as ``low_spent``, that interval's lower end at the
+    level a fail at look ``look`` reads (sequential.level); its outcome is
+    decided by checks/scene.py. An estimator with zero variance at every spp
+    is exact. With fewer than 3 usable rungs the interval is unbounded and
+    nothing is claimed. Rungs whose relMSE is within metrics.RESOLVED× the
+    reference's share are left out."""
     if all(r.variance_per_render <= 1e-12 for r in runs):
         return Convergence(slope=float("nan"), low=float("nan"), high=float("nan"), exact=True,
                            consistent_with_mc=True, passed=True)
@@ -144,12 +147,69 @@ def convergence_fit(runs: list[RunStats], alpha: float = 0.05) -> Convergence:
     # render a rung gives no spread, and the residuals alone speak)
     var = [float(np.var(r.relmse_per_render, ddof=1)) / len(r.relmse_per_render)
            for r in ok] if all(len(r.relmse_per_render) > 1 for r in ok) else None
-    slope, _, (lo, hi) = statistics.loglog_fit([r.spp for r in ok],
-                                               [r.relmse - r.reference_relmse for r in ok],
-                                               alpha, y_var=var)
+    x, y = [r.spp for r in ok], [r.relmse - r.reference_relmse for r in ok]
+    slope, _, (lo, hi) = statistics.loglog_fit(x, y, alpha, y_var=var)
+    spent = statistics.loglog_fit(x, y, sequential.level(alpha, look), y_var=var)[2][0]
     return Convergence(slope=float(slope), low=float(lo), high=float(hi), exact=False,
                        consistent_with_mc=bool(lo <= convergence.EXPECTED_SLOPE <= hi),
-                       passed=bool(hi < 0))
+                       passed=bool(hi < 0), low_spent=float(spent),
+                       renders=min(len(r.relmse_per_render) for r in runs))
+
+
+def settle_convergence(ctx) -> None:
+    """Each Monte Carlo estimator's convergence fit, continued where more
+    renders per rung may decide it (convergence.more_renders_decide): look j
+    adds to every rung as many fresh renders as it holds (its own seed
+    block's next ones, as if the ladder's K were larger), and the fit is
+    read again. A fail at look j reads its interval at sequential.level(α, j)
+    (Σ_j α_j = α), so looking again does not inflate the false-fail rate. The
+    budget is the scene's sequential one, × the ladder's renders per rung;
+    after a look, a fit too wide for the whole budget to narrow
+    (convergence.renders_to_decide) is not continued."""
+    ref, k = ctx.reference, ctx.plan.renders
+    most = int(k * ctx.run.growth(ctx.run.sequential.scene_budget))
+    for name, est in ctx.measured.items():
+        if evidence.by_design(name):
+            continue
+        runs, events = est.runs, ctx.evidence[name].events
+        c = est.convergence
+        c.tail_resolved, c.budget_renders = evidence.tail_resolved(events), most
+        # (after a look, an interval the whole budget cannot narrow enough,
+        # even as 1/√renders, is left where it is: its renders would decide
+        # nothing; the ladder's own width, from few renders, is too noisy a
+        # guide: 5.5 wide on 2 renders per rung, decided on 4)
+        while (convergence.convergence_outcome(c, c.tail_resolved, len(runs))[0]
+               == "inconclusive" and convergence.more_renders_decide(c)
+               and 2 * c.renders <= most
+               and not (c.looks and convergence.renders_to_decide(c) > most)):
+            look = c.looks + 1
+            fresh = more_renders(ctx, name, c.renders, look)
+            runs = [pooled(run, fresh[run.spp], ref) for run in runs]
+            events = events + tails.tail_events(fresh.values(), ref.mean)[0]
+            c = est.convergence = dataclasses.replace(
+                convergence_fit(runs, look=look), looks=look, budget_renders=most,
+                tail_resolved=evidence.tail_resolved(events))
+
+
+def more_renders(ctx, name: str, have: int, look: int) -> dict[int, np.ndarray]:
+    """{spp: (have, H, W, 3)}: ``have`` more renders of estimator ``name`` on
+    every rung, seeds ``have`` … 2·have − 1 of the rung's block (kept)."""
+    out = {}
+    for rung, spp in enumerate(ctx.plan.ladder):
+        seeds_ = seeds.stream("ladder", rung).take(2 * have)[have:]
+        out[spp] = stacks.kept(ctx, kept_file(ctx, f"spp{spp}-{name}-look{look}"),
+                               f"rung {rung} look {look}", {name: ctx.integrators[name]},
+                               {name: spp}, have, seeds_, label=ctx.label)[name].images[..., :3]
+    return out
+
+
+def pooled(run: RunStats, fresh: np.ndarray, reference) -> RunStats:
+    """``run`` with the relMSE of the ``fresh`` renders (K, H, W, 3) of its
+    rung added to its renders' (the rest of its metrics stay the ladder's)."""
+    per = run.relmse_per_render + metrics.per_render_relmse(
+        fresh.astype(np.float64), reference.mean[..., :3]).tolist()
+    return dataclasses.replace(run, relmse_per_render=per, relmse=float(np.mean(per)),
+                               renders=len(per))
 
 
 def settle(ctx) -> None:
