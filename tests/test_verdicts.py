@@ -278,12 +278,12 @@ def test_a_fit_more_renders_may_decide_says_when_its_budget_is_spent():
     assert outcome == "inconclusive" and "budget spent: 64 renders per rung" in text, text
     assert "after 2 more looks" in text
     assert "budget" not in convergence.convergence_outcome(wide, True)[1]
-    # (1.94 wide on 16 renders: about 60 would narrow it to 1, as 1/√renders)
-    far = replace(wide, renders=16, budget_renders=32)
-    assert convergence.renders_to_decide(far) == pytest.approx(16 * 1.94 ** 2)
-    outcome, text = convergence.convergence_outcome(far, True)
-    assert outcome == "inconclusive" and "about 60 renders per rung" in text, text
-    assert convergence.renders_to_decide(conv(-1.0, -1.2, -0.8)) == 0
+    assert "about 2.4e+02 would narrow it to 1.0" in text       # 64 × 1.94²
+    assert "budget" not in convergence.convergence_outcome(replace(spent, renders=32), True)[1]
+    far = replace(conv(-0.48, -0.90, -0.05), renders=16, budget_renders=16)
+    assert "twice this one's renders twice as many" in convergence.convergence_outcome(
+        far, True)[1]
+    assert convergence.renders_to_decide(far) == 0
 
 
 def test_convergence_of_exact_and_unmeasurable_estimators():

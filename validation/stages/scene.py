@@ -163,9 +163,7 @@ def settle_convergence(ctx) -> None:
     block's next ones, as if the ladder's K were larger), and the fit is
     read again. A fail at look j reads its interval at sequential.level(α, j)
     (Σ_j α_j = α), so looking again does not inflate the false-fail rate. The
-    budget is the scene's sequential one, × the ladder's renders per rung;
-    after a look, a fit too wide for the whole budget to narrow
-    (convergence.renders_to_decide) is not continued."""
+    budget is the scene's sequential one, × the ladder's renders per rung."""
     ref, k = ctx.reference, ctx.plan.renders
     most = int(k * ctx.run.growth(ctx.run.sequential.scene_budget))
     for name, est in ctx.measured.items():
@@ -174,14 +172,12 @@ def settle_convergence(ctx) -> None:
         runs, events = est.runs, ctx.evidence[name].events
         c = est.convergence
         c.tail_resolved, c.budget_renders = evidence.tail_resolved(events), most
-        # (after a look, an interval the whole budget cannot narrow enough,
-        # even as 1/√renders, is left where it is: its renders would decide
-        # nothing; the ladder's own width, from few renders, is too noisy a
-        # guide: 5.5 wide on 2 renders per rung, decided on 4)
+        # (no early stop on a width the budget seems unable to narrow: on a
+        # heavy tail the width read off few renders swings, and such fits
+        # were decided: convergence.renders_to_decide)
         while (convergence.convergence_outcome(c, c.tail_resolved, len(runs))[0]
                == "inconclusive" and convergence.more_renders_decide(c)
-               and 2 * c.renders <= most
-               and not (c.looks and convergence.renders_to_decide(c) > most)):
+               and 2 * c.renders <= most):
             look = c.looks + 1
             fresh = more_renders(ctx, name, c.renders, look)
             runs = [pooled(run, fresh[run.spp], ref) for run in runs]
