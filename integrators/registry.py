@@ -16,8 +16,12 @@ Each plugin class declares its facts as class attributes beside its strategy
 * ``listing_order`` — where it stands in tables and charts;
 * ``depths`` — the ``max_depth`` values it defines (None: any);
 * ``unbiased`` — False for an estimator biased by design (a quadrature such
-  as bayesian_hemisphere): the suite then measures its bias instead of
-  testing for none;
+  as bayesian_hemisphere): the suite then measures its bias against N
+  instead of testing for none — which it can only for an estimator of N
+  directions (derived from ``DirectionSetEstimator``): a user's class that
+  is not one is tested as unbiased whatever it declares;
+* ``equal_rays_baseline`` — the Monte Carlo estimator an estimator of N
+  directions is compared with at equal rays;
 * ``diffuse_only`` — it refuses glossy lobes too (``glossy_bsdf``);
 * ``learns`` — it learns its sampling density while it renders, in training
   passes it takes from the render's samples (properties ``train_passes`` and
@@ -70,6 +74,9 @@ class Facts:
     diffuse_only: bool = False
     equal_rays_baseline: str = "cosine_hemisphere"
     learns: bool = False
+    #: N directions per shading point (derived from DirectionSetEstimator):
+    #: the validation's quadrature stage measures it (equal rays, bias against N).
+    point_set: bool = False
 
     @property
     def reaches(self) -> frozenset:
@@ -104,7 +111,13 @@ def facts_of(cls) -> Facts:
                  depths=getattr(cls, "depths", None), unbiased=getattr(cls, "unbiased", True),
                  diffuse_only=getattr(cls, "diffuse_only", False),
                  equal_rays_baseline=getattr(cls, "equal_rays_baseline", "cosine_hemisphere"),
-                 learns=getattr(cls, "learns", False))
+                 learns=getattr(cls, "learns", False), point_set=is_point_set_class(cls))
+
+
+def is_point_set_class(cls) -> bool:
+    """Is plugin class ``cls`` an estimator of N directions per shading point
+    (derived from mcillum's DirectionSetEstimator)?"""
+    return any(c.__name__ == "DirectionSetEstimator" for c in cls.__mro__)
 
 
 def register(cls) -> type:
@@ -149,7 +162,7 @@ def facts(name: str) -> Facts:
 #: stays neutral (its name, a spare colour, reaches every kind of content,
 #: no pdf bound, any max_depth, unbiased).
 DECLARABLE = ("display_name", "colour", "reachable", "max_direction_pdf", "listing_order",
-              "depths", "unbiased", "diffuse_only", "learns")
+              "depths", "unbiased", "diffuse_only", "learns", "equal_rays_baseline")
 
 #: name → Facts declared by a user's integrator class (not one of ours).
 _learned: dict[str, Facts] = {}
@@ -172,13 +185,18 @@ def learn(name: str, cls) -> Facts | None:
         raise ValueError(f"integrator '{name}' ({cls.__name__}) declares reachable "
                          f"{', '.join(map(str, unknown))}; the kinds are {', '.join(KINDS)}")
     depths = declared.get("depths")
+    sets = is_point_set_class(cls)
     found = Facts(name, declared.get("display_name") or name, declared.get("colour"),
                   frozenset(reachable), declared.get("max_direction_pdf"),
                   declared.get("listing_order", 500), ours=False,
                   depths=tuple(depths) if depths is not None else None,
-                  unbiased=bool(declared.get("unbiased", True)),
+                  # (biased by design exempts it from the unbiasedness test only
+                  # where its bias is measured against N instead: a point set)
+                  unbiased=bool(declared.get("unbiased", True)) or not sets,
                   diffuse_only=bool(declared.get("diffuse_only", False)),
-                  learns=bool(declared.get("learns", False)))
+                  learns=bool(declared.get("learns", False)),
+                  equal_rays_baseline=declared.get("equal_rays_baseline", "cosine_hemisphere"),
+                  point_set=sets)
     _learned[name] = found
     return found
 

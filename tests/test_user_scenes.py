@@ -29,7 +29,7 @@ from mcillum.validation.plan import profiles, scene_files, scenes, user_scenes
 from mcillum.validation.run import renders
 
 from test_stock_scenes import POINT, SKY, write_scene
-from user_code import MY_INTEGRATOR
+from user_code import MY_INTEGRATOR, MY_QUADRATURE
 
 DIRECT = '<integer name="max_depth" value="2"/>'
 
@@ -195,6 +195,31 @@ def test_the_broken_twin_exits_1_naming_the_check(llvm, tmp_path, capsys, user):
                          "--out", str(tmp_path / "out"))
     assert code == 1
     assert "scene/my_direct_broken/unbiased" in said.out
+
+
+def test_a_users_quadrature_is_judged_as_ours_and_a_declared_bias_needs_one(llvm, tmp_path,
+                                                                           capsys, user):
+    """A user's class derived from mcillum's bayesian_hemisphere, every
+    direction's weight 5 % low, goes through the quadrature stage as
+    mcillum's own does (before, only registered estimators did, and its one
+    check was `finite`): its bias does not go to 0, bias_shrinks fails. A
+    plain integrator that declares ``unbiased = False`` has nothing to
+    measure its bias against N: it is tested as unbiased, and its 5 % dark
+    light samples fail that."""
+    _, scene = user
+    plugin = tmp_path / "code" / "mine.py"
+    plugin.write_text(MY_INTEGRATOR + MY_QUADRATURE)
+    out = tmp_path / "out"
+    code, said = run_cli(capsys, scene, "--plugin", str(plugin), "--res", "8", "--out", str(out),
+                         "--estimators", "my_bayes_low", "my_direct_declared_biased")
+    data = json.loads((out / "results.json").read_text())
+    outcome = {c["id"].split("/", 1)[1]: c["outcome"] for c in data["checks"]}
+    assert outcome["my_bayes_low/bias_shrinks"] == "fail", outcome
+    assert "my_bayes_low/unbiased" not in outcome
+    assert outcome["my_direct_declared_biased/unbiased"] == "fail", outcome
+    assert code == 1, said.out
+    facts = data["estimator_facts"]
+    assert not facts["my_bayes_low"]["unbiased"] and facts["my_direct_declared_biased"]["unbiased"]
 
 
 def test_estimators_that_cannot_render_a_user_scene_say_why(llvm, tmp_path, capsys):

@@ -64,3 +64,27 @@ class TwicePath(mi.SamplingIntegrator):
 
 mi.register_integrator("twice_path", lambda props: TwicePath(props))
 '''
+
+#: Appended to :data:`MY_INTEGRATOR`: a user's quadrature, derived from
+#: mcillum's bayesian_hemisphere with every direction's weight 5 % low (biased
+#: by design, and by 5 % more); and their direct-light integrator, 5 % dark,
+#: declaring itself biased by design although nothing measures it against N.
+MY_QUADRATURE = '''
+
+Bayes = type(mi.load_dict({"type": "bayesian_hemisphere"}))
+
+
+class MyBayesLow(Bayes):
+    def direction(self, j, drawn, si, bsdf, ctx, active):
+        wo, f, a = super().direction(j, drawn, si, bsdf, ctx, active)
+        return wo, f * 0.95, a
+
+
+class MyDirectDeclaredBiased(MyDirectBroken):
+    unbiased = False
+
+
+mi.register_integrator("my_bayes_low", lambda props: MyBayesLow(props))
+mi.register_integrator("my_direct_declared_biased",
+                       lambda props: MyDirectDeclaredBiased(props))
+'''

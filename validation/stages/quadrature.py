@@ -60,7 +60,9 @@ EXACT = references.EXACT
 
 
 def is_point_set(name: str) -> bool:
-    return registry.facts(name).depths is not None and name in registry.names()
+    """An estimator of N directions per shading point, mcillum's or a user's
+    class derived from one (registry facts ``point_set``)."""
+    return registry.facts(name).point_set
 
 
 def planned_renders(names, k: int) -> int:
