@@ -205,18 +205,23 @@ def test_a_users_quadrature_is_judged_as_ours_and_a_declared_bias_needs_one(llvm
     check was `finite`): its bias does not go to 0, bias_shrinks fails. A
     plain integrator that declares ``unbiased = False`` has nothing to
     measure its bias against N: it is tested as unbiased, and its 5 % dark
-    light samples fail that."""
+    light samples fail that. Beside mcillum's three point sets: four need
+    more of the quadrature stage's seed blocks than it had (8)."""
     _, scene = user
     plugin = tmp_path / "code" / "mine.py"
     plugin.write_text(MY_INTEGRATOR + MY_QUADRATURE)
     out = tmp_path / "out"
+    # (with mcillum's three point sets: four need more seed blocks than 8)
     code, said = run_cli(capsys, scene, "--plugin", str(plugin), "--res", "8", "--out", str(out),
-                         "--estimators", "my_bayes_low", "my_direct_declared_biased")
+                         "--estimators", "my_bayes_low", "my_direct_declared_biased",
+                         "fibonacci_hemisphere", "bayesian_hemisphere", "bayesian_importance")
     data = json.loads((out / "results.json").read_text())
     outcome = {c["id"].split("/", 1)[1]: c["outcome"] for c in data["checks"]}
     assert outcome["my_bayes_low/bias_shrinks"] == "fail", outcome
     assert "my_bayes_low/unbiased" not in outcome
     assert outcome["my_direct_declared_biased/unbiased"] == "fail", outcome
+    for ours in ("fibonacci_hemisphere", "bayesian_importance"):
+        assert outcome[f"{ours}/unbiased"] != "fail", outcome
     assert code == 1, said.out
     facts = data["estimator_facts"]
     assert not facts["my_bayes_low"]["unbiased"] and facts["my_direct_declared_biased"]["unbiased"]

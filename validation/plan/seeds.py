@@ -14,8 +14,9 @@ bench`, which used 0, 1, …, has its own stream now):
     speed            budget j, render i  →  500 000 + 10 000·j + i  (the speed stage's
                      equal-time renders at the display resolution; 9 budgets)
     speed_timing     590 000 + i         (its timed renders for the cost model)
-    quadrature       block b, render i  →  600 000 + 10 000·b + i  (stages/quadrature.py: the
-                     point-set estimators at N = 16, default, 256 and cosine at N·spp)
+    quadrature       block b, render i  →  600 000 + 1 000·b + i  (stages/quadrature.py: the
+                     point-set estimators at N = 16, default, 256 and cosine at N·spp;
+                     2n + 2 blocks for n point sets, so 80 blocks of 1 000)
     failure          700 000 + i         (K seeds per failure case)
     sunless          750 000 + i         (the same case on its map without the sun)
     replication      800 000 + i         (reserved: fresh renders that repeated a
@@ -89,7 +90,7 @@ STREAMS = {
     "ladder": Layout(0, 10_000, blocks=50),
     "speed": Layout(500_000, 10_000, blocks=9),
     "speed_timing": Layout(590_000, 10_000),
-    "quadrature": Layout(600_000, 10_000, blocks=8),
+    "quadrature": Layout(600_000, 1_000, blocks=80),
     "learning": Layout(680_000, 1_000, blocks=20),
     "failure": Layout(700_000, 50_000),
     "sunless": Layout(750_000, 50_000),
