@@ -708,3 +708,35 @@ def test_bayesian_error_bars_are_calibrated_at_two_spp_16x_apart(llvm, envmap):
     assert done.returncode == 0, done.stderr[-3000:]
     medians = json.loads(done.stdout.strip().splitlines()[-1])
     assert all(2 / 3 <= m <= 3 / 2 for m in medians.values()), medians
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason=(
+    "a known defect: bayesian_hemisphere's lobe set maps its nodes by a Phong lobe "
+    "fitted at the BSDF's peak, and a GGX lobe's tails lie beyond it; -6.6 % at "
+    "N = 256 here, -7.1 % under a constant map (docs/measurements.md, 2026-12-04)"))
+def test_bayesian_hemisphere_bias_goes_to_zero_on_a_ggx_lobe(llvm):
+    """A gold-like rough conductor (GGX, α = 0.3) under courtyard, as a
+    user's scene holds one: at N = 256 the image mean must lie within
+    convergence.BIAS_LIMIT (2 %) of `path`'s, as on Phong and Beckmann lobes
+    (Beckmann α = 0.3: −1.0 %). Strict: it fails the day the estimator is
+    fixed, so that this mark is taken off."""
+    from mcillum import envmaps
+    from mcillum.validation.checks import convergence
+    scene = mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 30,
+                   "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 4], target=[0, 0, 0],
+                                                              up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 8, "height": 8,
+                            "rfilter": {"type": "box"}}},
+        "sphere": {"type": "sphere", "bsdf": {"type": "roughconductor", "distribution": "ggx",
+                                              "alpha": 0.3}},
+        "sky": {"type": "envmap", "filename": str(envmaps.resolve("courtyard")[0])}})
+    ref = batch(scene, renders.make_integrator("path", {"max_depth": 2}), 2048, 8,
+                first_seed=REFERENCE_SEED).mean(axis=0)[..., :3]
+    x = batch(scene, renders.make_integrator("bayesian_hemisphere",
+                                             {"directions": 256, "max_depth": 2}),
+              16, 4).mean(axis=0)[..., :3]
+    bias = float((x - ref).mean() / ref.mean())
+    assert abs(bias) < convergence.BIAS_LIMIT, f"image mean {bias:+.2%} of path's"
