@@ -14,7 +14,7 @@ from . import gp_settings, registry, scene_checks
 from .direction_set import DirectionSetEstimator
 from .estimator import over_pdf
 from .fibonacci_hemisphere import MAPPINGS, fibonacci_point
-from .phong import phong_lobe_pdf, sample_phong_lobe
+from .phong import covering_exponent, phong_lobe_pdf, sample_phong_lobe
 from .gp_scene import (DEFAULT_LENGTH_SCALE, DEFAULT_MAPPING, DEFAULT_NOISE, DEFAULT_SETS,
                        choose_hyperparameters, choose_lobe_settings, likelihood_length_scale)
 
@@ -32,9 +32,10 @@ PRIOR_MEANS = ("constant", "zero")
 #
 # Glossy lobes: a second set of N_b = ⌊N/2⌋ nodes about the mirror direction
 # r, mapped by a Phong lobe cosⁿ α whose n is read off the BSDF (its glossy
-# density at r is (n + 1)/(2π) for a Phong lobe), rounded to the nearest of
-# gp_settings.EXPONENTS so that its weights are tabulated like the diffuse
-# set's. The two sets
+# density at r is (n + 1)/(2π) for a Phong lobe; lowered where the lobe's
+# tails are heavier, as GGX's are: phong.covering_exponent), rounded to the
+# nearest of gp_settings.EXPONENTS so that its weights are tabulated like
+# the diffuse set's. The two sets
 # split the integral, not the samples: the lobe set integrates f_glossy cos L
 # where r·ω > 0 against p_n, the diffuse set everything else against cos θ/π.
 
@@ -45,12 +46,6 @@ STEPS_PER_OCTAVE, EXPONENTS = gp_settings.STEPS_PER_OCTAVE, gp_settings.EXPONENT
 def lobes(ctx: mi.BSDFContext, flags) -> mi.BSDFContext:
     """``ctx`` restricted to the lobes of ``flags`` (what it enables of them)."""
     return mi.BSDFContext(ctx.mode, ctx.type_mask & +flags, ctx.component)
-
-
-def lobe_exponent(peak_pdf):
-    """n of the Phong lobe (n + 1)/(2π) cosⁿ α whose density at its axis is
-    ``peak_pdf``: 2π·peak − 1."""
-    return dr.two_pi * peak_pdf - 1.0
 
 
 def lobe_index(exponent):
@@ -187,8 +182,10 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
     a shading point whose BSDF has one, N_b = ⌊N/2⌋ of the directions (for
     N ≥ 4) form a second set about the mirror direction r, mapped by a
     Phong lobe p_n(ω) = (n + 1)/(2π) cosⁿ α whose exponent is read off the
-    BSDF (n = 2π p_glossy(r) − 1, exact for ``phong``) and rounded to one
-    of 41 tabulated exponents (four per octave, 1 to 1024). The sets split
+    BSDF (n = 2π p_glossy(r) − 1, exact for ``phong``; lowered where the
+    lobe falls slower than cosⁿ α, so that a GGX lobe's power-law tails lie
+    inside p_n: ``phong.covering_exponent``) and rounded to one of 41
+    tabulated exponents (four per octave, 1 to 1024). The sets split
     the integral, not the samples: the lobe set integrates f_glossy cos θ L_i
     where r·ω > 0 against p_n, the other N − N_b directions everything else
     against cos θ/π, each with its own BMC weights and posterior variance
@@ -390,10 +387,12 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
         if dr.hint(not self.glossy, mode='scalar'):
             return turn, which
         # A glossy point: its lobe's exponent from the glossy density at the
-        # mirror direction (0 there: no lobe towards the viewer, one set)
-        peak = bsdf.pdf(lobes(ctx, mi.BSDFFlags.Glossy), si, mi.reflect(si.wi), active)
+        # mirror direction (0 there: no lobe towards the viewer, one set),
+        # widened where the lobe's tails are heavier than a Phong lobe's
+        glossy, r = lobes(ctx, mi.BSDFFlags.Glossy), mi.reflect(si.wi)
+        peak = bsdf.pdf(glossy, si, r, active)
         lobe = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Glossy) & (peak > 0)
-        q = lobe_index(lobe_exponent(peak))
+        q = lobe_index(covering_exponent(lambda w: bsdf.pdf(glossy, si, w, lobe), r, peak))
         return turn, which, lobe, q, sampler.next_1d(active)
 
     def second_set_start(self, drawn):

@@ -12,6 +12,7 @@ import mitsuba as mi
 import numpy as np
 
 from . import gp_quadrature, gp_settings
+from .phong import covering_exponent
 from .gp_settings import sphere_directions
 
 #: The settings ``auto`` stands for where the scene has no environment map,
@@ -309,7 +310,9 @@ def held_out_lobes(scene, m: int = HELD_OUT_NORMALS):
     first sensor sees through a 4√m × 4√m film grid, M ≤ m evenly spaced in
     the grid's order: the mirror direction of the camera ray about the
     shading normal, the exponent of the Phong lobe of the same density
-    there, 2π·p_glossy(r) − 1, and the point held-out rays leave from
+    there, 2π·p_glossy(r) − 1, widened where the lobe's tails are heavier
+    (phong.covering_exponent, as the estimator reads it), and the point
+    held-out rays leave from
     (off_surface). Empty arrays where no glossy surface is seen."""
     ctx = mi.BSDFContext()
     ctx.type_mask = +mi.BSDFFlags.Glossy
@@ -321,7 +324,8 @@ def held_out_lobes(scene, m: int = HELD_OUT_NORMALS):
         ok = si.is_valid() & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Glossy) & (peak > 0)
         # (the side the camera sees: the normal turned towards it)
         n = si.to_world(mi.Vector3f(0, 0, dr.sign(si.wi.z)))
-        return ok, si.to_world(r), dr.two_pi * peak - 1.0, si.p, n
+        exponent = covering_exponent(lambda w: bsdf.pdf(ctx, si, w, ok), r, peak)
+        return ok, si.to_world(r), exponent, si.p, n
 
     axes, exponents, points, normals = _film_hits(scene, m, (3, 1, 3, 3), lobe_at)
     return axes / np.linalg.norm(axes, axis=1, keepdims=True), exponents, \

@@ -37,6 +37,33 @@ def invert_phong_lobe(v: mi.Vector3f, exponent) -> mi.Point2f:
     return mi.Point2f(dr.power(dr.maximum(v.z, 0.0), exponent + 1.0), phi * dr.inv_two_pi)
 
 
+#: Where :func:`covering_exponent` compares a lobe with the Phong lobe of
+#: its peak: the angles at which that lobe falls to e^-8 and e^-30 of its
+#: peak (the kernel rule of gp_quadrature spans to e^-32).
+COVER_LEVELS = (8.0, 30.0)
+
+
+def covering_exponent(pdf, axis: mi.Vector3f, peak):
+    """The exponent n of a Phong lobe about ``axis`` whose tails are no
+    lighter than those of the lobe whose density is ``pdf(ω)`` (``peak`` at
+    the axis): the peak's own n₀ = 2π·peak − 1, lowered where the lobe,
+    four azimuths about the axis at each angle of :data:`COVER_LEVELS`, falls
+    slower than cos^{n₀}: n = ln(pdf(ω)/peak) / ln cos α there. Exact (n₀)
+    for a Phong lobe; a GGX lobe's power-law tails make it wider, so that
+    f/p_n stays bounded where the lobe's mass is."""
+    n0 = dr.maximum(dr.two_pi * peak - 1.0, 1.0)
+    frame, n = mi.Frame3f(axis), n0
+    for level in COVER_LEVELS:
+        cos_a = dr.exp(-level / n0)
+        sin_a = dr.safe_sqrt(1.0 - dr.square(cos_a))
+        for c, s in ((1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0)):
+            p = pdf(frame.to_world(mi.Vector3f(c * sin_a, s * sin_a, cos_a)))
+            # (a zero density there, below the surface, says nothing of the tail)
+            fit = (dr.log(dr.maximum(p, 1e-30)) - dr.log(dr.maximum(peak, 1e-30))) / dr.log(cos_a)
+            n = dr.select((p > 0) & (fit < n), fit, n)
+    return dr.maximum(n, 1.0)
+
+
 def _cosine_sample(u: mi.Point2f) -> mi.Vector3f:
     return mi.warp.square_to_cosine_hemisphere(u)
 
