@@ -52,14 +52,14 @@ def covering_exponent(pdf, axis: mi.Vector3f, peak):
     for a Phong lobe; a GGX lobe's power-law tails make it wider, so that
     f/p_n stays bounded where the lobe's mass is."""
     n0 = dr.maximum(dr.two_pi * peak - 1.0, 1.0)
-    frame, n = mi.Frame3f(axis), n0
+    frame, n, log_peak = mi.Frame3f(axis), n0, dr.log(dr.maximum(peak, 1e-30))
     for level in COVER_LEVELS:
         cos_a = dr.exp(-level / n0)
         sin_a = dr.safe_sqrt(1.0 - dr.square(cos_a))
         for c, s in ((1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0)):
             p = pdf(frame.to_world(mi.Vector3f(c * sin_a, s * sin_a, cos_a)))
             # (a zero density there, below the surface, says nothing of the tail)
-            fit = (dr.log(dr.maximum(p, 1e-30)) - dr.log(dr.maximum(peak, 1e-30))) / dr.log(cos_a)
+            fit = (dr.log(dr.maximum(p, 1e-30)) - log_peak) / dr.log(cos_a)
             n = dr.select((p > 0) & (fit < n), fit, n)
     return dr.maximum(n, 1.0)
 

@@ -31,6 +31,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mcillum.integrators import registry
 from mcillum.validation.run import renders
 
 
@@ -47,7 +48,7 @@ def has_pdf_pair(cls) -> bool:
 
 def is_direction_set(cls) -> bool:
     """Does ``cls`` trace a set of N directions per shading point?"""
-    return any(c.__name__ == "DirectionSetEstimator" for c in cls.__mro__)
+    return registry.is_point_set_class(cls)
 
 
 # ------------------------------- The twins ---------------------------------
