@@ -13,6 +13,8 @@ the reference is the exact mean with a tiny variance. Each test states its
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from scipy import stats
@@ -178,6 +180,50 @@ def test_a_region_darkened_on_a_heavy_tailed_estimator_fails():
     got = [sequential.settle([(SPP, dark())], ref, reader(mean), more, EPSILON,
                              GROWTH)[0].decision.outcome for _ in range(20)]
     assert got.count("fail") >= 17, got
+
+
+def one_tail_pixel(rng, spp=SPP, k=K, tail=True):
+    """K renders (K, P, P, 3) of an image with no tail but at one pixel,
+    whose light (0.3 of its 1.3) comes in rare hits, 5·10⁻⁴ per sample, each
+    worth 600: a firefly in a render of 16 spp (37 ≫ 13), none in one of 256
+    (2.3). ``tail`` False: that light is missing (a bias)."""
+    x = 1.0 + rng.normal(0, SIGMA / np.sqrt(spp), (k, P, P, 1))
+    if tail:
+        x[:, 0, 0] += rng.binomial(spp, 5e-4, (k, 1)) * 600.0 / spp
+    return np.repeat(x, 3, axis=-1)
+
+
+def test_a_tail_no_render_showed_as_a_firefly_is_confirmed_where_it_would(monkeypatch):
+    """"No firefly, no tail" is what lets a darker pixel count: here the
+    first 64 renders of 16 spp miss the pixel's hits in 60 % of seeds, and
+    it is 23 % dark with no firefly anywhere. A confirming batch at higher
+    spp averages a hit below the firefly threshold and confirms the fail
+    whenever it misses the hits too; the confirming batch at the first
+    look's spp (sequential.confirming_batch: CONFIRM_UNSEEN × the samples)
+    shows them as fireflies. 100 seeds of the correct estimator fail at
+    most as often as α allows (one-sided binomial bound at 0.001; measured:
+    0); confirmed the old way (4× the samples in 16 renders) they fail at
+    least 3 times (measured: 7); with the light really missing, all 20
+    fail."""
+    mean = np.ones((P, P, 3))
+    mean[0, 0] = 1.3
+    ref = statistics.Moments(mean, np.full((P, P, 3), 1e-6), 10_000, mean.mean(axis=(0, 1)),
+                             np.full(3, 1e-8))
+
+    def run(rng, trials, tail=True):
+        more = lambda look, spp, k: (spp, one_tail_pixel(rng, spp, k, tail))   # noqa: E731
+        return [sequential.settle([(SPP, one_tail_pixel(rng, tail=tail))], ref, reader(mean),
+                                  more, EPSILON, 16)[0].decision.outcome
+                for _ in range(trials)]
+
+    got = run(np.random.default_rng(8), 100)
+    assert got.count("fail") <= stats.binom.ppf(0.999, 100, ALPHA), got
+    missing = run(np.random.default_rng(9), 20, tail=False)
+    assert missing.count("fail") == 20, missing
+    monkeypatch.setattr(sequential, "confirming_batch", lambda d, batches, k: (
+        math.ceil(sequential.CONFIRM * sequential.samples(batches) / k), k))
+    got = run(np.random.default_rng(8), 100)
+    assert got.count("fail") >= 3, got
 
 
 def test_added_light_fails_even_with_a_tail():
