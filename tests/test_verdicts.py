@@ -371,6 +371,39 @@ def test_replication_tests_only_the_rejections_that_counted():
         [(t.outcome, t.replicated) for t in real]
 
 
+def test_a_reference_off_at_a_pixel_is_not_the_estimators_fail():
+    """A reference 2 % high at one pixel, 10 of its own standard errors (a
+    rare event it caught, which its variance does not show): a correct
+    estimator without a tail reads darker there, and its confirming batch,
+    tested against the same reference, confirms it whatever its size. With path rendered on the
+    confirming batch's seeds (``control``), path is as dark there and no seed
+    fails; an estimator 10 % dark at that pixel, which path's renders are
+    not, still fails in every seed."""
+    mean = np.ones((P, P, 3))
+    ref_mean = mean.copy()
+    ref_mean[0, 0] = 1.02
+    ref = statistics.Moments(ref_mean, np.full((P, P, 3), 4e-6 * 10_000), 10_000,
+                             ref_mean.mean(axis=(0, 1)), np.full(3, 1e-8))
+
+    def run(seed, control, dark=1.0, trials=30):
+        rng = np.random.default_rng(seed)
+
+        def draw(spp, k, scale=1.0):
+            x = 1.0 + rng.normal(0, SIGMA / np.sqrt(spp), (k, P, P, 1))
+            x[:, 0, 0] *= scale
+            return np.repeat(x, 3, axis=-1)
+        more = lambda look, spp, k: (spp, draw(spp, k, dark))   # noqa: E731
+        path = (lambda look, spp, k: (spp, draw(spp, k))) if control else None   # noqa: E731
+        return [sequential.settle([(1024, draw(1024, K, dark))], ref, reader(mean), more,
+                                  EPSILON, 16, control=path)[0].decision.outcome
+                for _ in range(trials)]
+
+    without = run(10, control=False)
+    assert without.count("fail") >= 20, without
+    assert run(10, control=True).count("fail") <= stats.binom.ppf(0.999, 30, ALPHA)
+    assert run(11, control=True, dark=0.9).count("fail") == 30
+
+
 # ------------------------- path's own renders as the control -------------------------
 
 def rare_pixel(rng, k=8, spp=256, q=0.003, hits=None, scale=1.0):

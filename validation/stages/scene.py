@@ -212,7 +212,7 @@ def settle(ctx) -> None:
     """Each estimator's unbiasedness test continued on fresh batches until it
     decides or its budget is spent (stages/sequential.py): look 0 is the
     ladder, read with path's own rejections as the control; a rejection that
-    counts is confirmed on the next batch."""
+    counts is confirmed on the next batch, beside path's renders of its seeds."""
     ref, seq = ctx.reference, ctx.run.sequential
     for name, found in ctx.evidence.items():
         if found.comparison is None:
@@ -224,7 +224,8 @@ def settle(ctx) -> None:
                                              sequential.renderer(ctx, name),
                                              seq.scene_epsilon,
                                              ctx.run.growth(seq.scene_budget),
-                                             reference_spp=ref.spp)
+                                             reference_spp=ref.spp,
+                                             control=sequential.control_renderer(ctx, name))
         found.settled.summary = c.summary()
 
 

@@ -50,7 +50,7 @@ from ..checks import evidence
 from ..plan import seeds
 from ..run import stacks
 from ..stats import statistics
-from .common import kept_file
+from .common import REFERENCE, kept_file
 
 #: Renders per batch at most (a case's 64 seeds become batches of 16 renders).
 BATCH_RENDERS = 16
@@ -103,11 +103,14 @@ def samples(batches) -> int:
     return int(sum(spp * x.shape[0] for spp, x in batches))
 
 
-def batch(ctx, name: str, look: int, spp: int, k: int) -> tuple[int, np.ndarray]:
+def batch(ctx, name: str, look: int, spp: int, k: int,
+          tag: str = "") -> tuple[int, np.ndarray]:
     """(spp, K renders (K, H, W, 3)) of estimator ``name``: look ``look``'s
-    batch, from block ``look`` of the context's sequential stream; kept."""
+    batch, from block ``look`` of the context's sequential stream; kept
+    (under ``tag`` instead of the name where given)."""
     stream = ctx.streams["sequential"]
-    images = stacks.kept(ctx, kept_file(ctx, f"{stream}-{look}-{name}"), f"{stream}[{look}]",
+    images = stacks.kept(ctx, kept_file(ctx, f"{stream}-{look}-{tag or name}"),
+                         f"{stream}[{look}]",
                          {name: ctx.integrators[name]}, {name: spp}, k,
                          seeds.stream(stream, look).take(k), label=ctx.label)[name].images
     return spp, images[..., :3]
@@ -116,6 +119,16 @@ def batch(ctx, name: str, look: int, spp: int, k: int) -> tuple[int, np.ndarray]
 def renderer(ctx, name: str):
     """``more(look, spp, k)`` for :func:`settle`: :func:`batch` of ``name``."""
     return lambda look, spp, k: batch(ctx, name, look, spp, k)
+
+
+def control_renderer(ctx, name: str):
+    """``control(look, spp, k)`` for :func:`settle` of estimator ``name``:
+    `path`, the reference's integrator, on the same seeds as a confirming
+    batch (kept under its shape: estimators confirm at their own spp); None
+    for path itself or where the context does not render it."""
+    if name == REFERENCE or REFERENCE not in ctx.integrators:
+        return None
+    return lambda look, spp, k: batch(ctx, REFERENCE, look, spp, k, f"control-{spp}x{k}")
 
 
 #: A test stops before its samples per pixel exceed this many times the
@@ -135,7 +148,7 @@ def budget(start: int, growth: float, reference_spp: int | None = None) -> int:
 
 def settle(first: list, reference, read, more, epsilon: float, growth: float,
            alpha: float = statistics.ALPHA, looks: int = 20,
-           reference_spp: int | None = None):
+           reference_spp: int | None = None, control=None):
     """The sequential test (module doc) of an estimator's renders ``first``
     [(spp, (K, H, W, C))] against ``reference`` (the reference's
     :class:`statistics.Moments`): ``read(comparison, batches, look)`` the
@@ -145,7 +158,9 @@ def settle(first: list, reference, read, more, epsilon: float, growth: float,
     ``growth`` the budget as a multiple of the first look's samples,
     ``looks`` the most looks there are seeds for, ``reference_spp`` the
     reference's samples per pixel (the budget stops at
-    :data:`REFERENCE_LEAD` × that). Returns
+    :data:`REFERENCE_LEAD` × that), ``control(look, spp, k)`` the
+    reference's integrator on a confirming batch's seeds (None: none; see
+    statistics.replicated_rejection). Returns
     (:class:`evidence.Settled`, the last look's comparison)."""
     batches = [(spp, np.asarray(x)[..., :3]) for spp, x in first]
     start = samples(batches)
@@ -167,10 +182,11 @@ def settle(first: list, reference, read, more, epsilon: float, growth: float,
         if d.outcome == "fail":
             fresh = [new]
             replicated, _, again, excused = statistics.replicated_rejection(
-                c, d, new[1], reference, alpha, lambda comp, y: read(comp, fresh, -1))
+                c, d, new[1], reference, alpha, lambda comp, y: read(comp, fresh, -1),
+                control(look + 1, spp, renders)[1] if control else None)
             replication = (f"{'replicated' if replicated else 'not replicated'} in "
                            f"{renders} fresh renders at {spp} spp"
-                           + (" (their fireflies carry it: a tail)" if excused else ""))
+                           + (f" ({excused})" if excused else ""))
             if replicated:
                 break
             if 2 * total > limit:

@@ -82,11 +82,13 @@ def _reader(ctx, name: str):
 
 def settled_test(ctx, name: str, x: np.ndarray) -> BatchTest:
     """The sequential test (stages/sequential.py) of estimator ``name``'s
-    renders ``x`` at the context's first look, as a :class:`BatchTest`."""
+    renders ``x`` at the context's first look, a fail confirmed beside
+    path's renders of the confirming seeds, as a :class:`BatchTest`."""
     epsilon, growth = terms(ctx)
     settled, c = sequential.settle([(common.first_look(ctx)[0], x)], ctx.reference.moments(),
                                    _reader(ctx, name), sequential.renderer(ctx, name),
-                                   epsilon, growth, reference_spp=ctx.reference.spp)
+                                   epsilon, growth, reference_spp=ctx.reference.spp,
+                                   control=sequential.control_renderer(ctx, name))
     d = settled.decision
     return BatchTest(passed=c.passed, pass_fraction=c.pass_fraction, min_p=c.min_p,
                      pooled_p=[float(p) for p in c.pooled_p], alpha_pixel=c.alpha_pixel,
