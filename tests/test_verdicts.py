@@ -375,10 +375,11 @@ def test_a_reference_off_at_a_pixel_is_not_the_estimators_fail():
     """A reference 2 % high at one pixel, 10 of its own standard errors (a
     rare event it caught, which its variance does not show): a correct
     estimator without a tail reads darker there, and its confirming batch,
-    tested against the same reference, confirms it whatever its size. With path rendered on the
-    confirming batch's seeds (``control``), path is as dark there and no seed
-    fails; an estimator 10 % dark at that pixel, which path's renders are
-    not, still fails in every seed."""
+    tested against the same reference, confirms it whatever its size. With
+    path rendered on the confirming batch's seeds (``control``), path is as
+    dark there: no seed
+    fails, and those undecided say why; an estimator 10 % dark at that
+    pixel, which path's renders are not, still fails in every seed."""
     mean = np.ones((P, P, 3))
     ref_mean = mean.copy()
     ref_mean[0, 0] = 1.02
@@ -395,13 +396,16 @@ def test_a_reference_off_at_a_pixel_is_not_the_estimators_fail():
         more = lambda look, spp, k: (spp, draw(spp, k, dark))   # noqa: E731
         path = (lambda look, spp, k: (spp, draw(spp, k))) if control else None   # noqa: E731
         return [sequential.settle([(1024, draw(1024, K, dark))], ref, reader(mean), more,
-                                  EPSILON, 16, control=path)[0].decision.outcome
+                                  EPSILON, 16, control=path)[0].decision
                 for _ in range(trials)]
 
-    without = run(10, control=False)
-    assert without.count("fail") >= 20, without
-    assert run(10, control=True).count("fail") <= stats.binom.ppf(0.999, 30, ALPHA)
-    assert run(11, control=True, dark=0.9).count("fail") == 30
+    without = [d.outcome for d in run(10, control=False)]
+    assert without.count("fail") >= 20, without            # measured: 30
+    beside = run(10, control=True)
+    assert [d.outcome for d in beside].count("fail") <= stats.binom.ppf(0.999, 30, ALPHA)
+    assert all("differs from the reference as much" in d.reason for d in beside
+               if d.outcome != "pass")
+    assert [d.outcome for d in run(11, control=True, dark=0.9)].count("fail") == 30
 
 
 # ------------------------- path's own renders as the control -------------------------
