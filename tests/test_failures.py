@@ -20,7 +20,7 @@ from mcillum.integrators import registry
 from mcillum.validation import pipeline
 from mcillum.validation.plan import profiles, seeds
 from mcillum.validation.run import renders
-from mcillum.validation.stats import statistics, tails
+from mcillum.validation.stats import replication, statistics, tails
 from mcillum.validation.checks import sun as sun_rules
 from mcillum.validation.checks.evidence import FAILING, HEAVY
 from mcillum.validation.stages.context import Run
@@ -331,15 +331,15 @@ def test_a_rejection_counts_only_if_it_replicates():
     ref = statistics.Moments.of(rng.normal(1.0, 0.05, (64, 4, 4, 3)))
     same = lambda: rng.normal(1.0, 0.05, (64, 4, 4, 3))        # noqa: E731
     shifted = lambda: rng.normal(1.1, 0.05, (64, 4, 4, 3))     # noqa: E731
-    real = statistics.replicated_compare(shifted(), ref, shifted)
+    real = replication.replicated_compare(shifted(), ref, shifted)
     assert not real.passed and real.replicated
     # a first batch whose mean at one pixel came out low by chance (as when a
     # tail went unseen) rejects, but fresh renders do not repeat it
     wild = same()
     wild[:, 0, 0] -= 0.05
-    fluke = statistics.replicated_compare(wild, ref, same)
+    fluke = replication.replicated_compare(wild, ref, same)
     assert not fluke.passed and fluke.replicated is False
-    assert statistics.replicated_compare(same(), ref, same).replicated is None
+    assert replication.replicated_compare(same(), ref, same).replicated is None
 
 
 HARDEST = [QUICK["failures.heavy_tail.sun_sky"],

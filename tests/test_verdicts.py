@@ -21,7 +21,7 @@ from scipy import stats
 
 from mcillum.validation.checks import convergence, evidence
 from mcillum.validation.stages import sequential
-from mcillum.validation.stats import statistics, tails
+from mcillum.validation.stats import replication, statistics, tails
 
 P, K, SPP, SIGMA = 16, 64, 16, 0.5
 P_HIT, TAIL = 1e-4, 0.5              # the rare source carries 0.5 of a pixel's 1.5
@@ -340,7 +340,7 @@ def test_convergence_of_exact_and_unmeasurable_estimators():
 
 def replicated(x, fresh, ref, mean):
     read = reader(mean)
-    return statistics.replicated_compare(x, ref, fresh, ALPHA,
+    return replication.replicated_compare(x, ref, fresh, ALPHA,
                                          lambda c, y: read(c, [(SPP, y)], 0))
 
 

@@ -23,7 +23,7 @@ probability at most α however many looks the budget allows (Bonferroni
 
 **A fail is confirmed.** A rejection that counts is tested again on the
 next batch alone (fresh seeds, :data:`CONFIRM` × the samples so far), at
-the rejected pixels and on the image mean (statistics.replicated_rejection):
+the rejected pixels and on the image mean (replication.replicated_rejection):
 if it comes back, fail; if not, that batch joins the pool and the test goes
 on. A fail that rests on darker pixels or image mean alone, with no firefly
 in the renders,
@@ -49,7 +49,7 @@ import numpy as np
 from ..checks import evidence
 from ..plan import seeds
 from ..run import stacks
-from ..stats import statistics
+from ..stats import replication, statistics
 from .common import REFERENCE, kept_file
 
 #: Renders per batch at most (a case's 64 seeds become batches of 16 renders).
@@ -160,13 +160,13 @@ def settle(first: list, reference, read, more, epsilon: float, growth: float,
     reference's samples per pixel (the budget stops at
     :data:`REFERENCE_LEAD` × that), ``control(look, spp, k)`` the
     reference's integrator on a confirming batch's seeds (None: none; see
-    statistics.replicated_rejection). Returns
+    replication.replicated_rejection). Returns
     (:class:`evidence.Settled`, the last look's comparison)."""
     batches = [(spp, np.asarray(x)[..., :3]) for spp, x in first]
     start = samples(batches)
     limit = budget(start, growth, reference_spp)
     k = min(BATCH_RENDERS, max(x.shape[0] for _, x in batches))
-    look, replicated, replication = 0, None, ""
+    look, replicated, confirmation = 0, None, ""
     while True:
         c = statistics.compare(statistics.Moments.pooled(batches), reference,
                                level(alpha, look))
@@ -181,27 +181,27 @@ def settle(first: list, reference, read, more, epsilon: float, growth: float,
         new = more(look + 1, spp, renders)
         if d.outcome == "fail":
             fresh = [new]
-            replicated, _, again, excused = statistics.replicated_rejection(
+            replicated, _, again, excused = replication.replicated_rejection(
                 c, d, new[1], reference, alpha, lambda comp, y: read(comp, fresh, -1),
                 control(look + 1, spp, renders)[1] if control else None)
-            replication = (f"{'replicated' if replicated else 'not replicated'} in "
+            confirmation = (f"{'replicated' if replicated else 'not replicated'} in "
                            f"{renders} fresh renders at {spp} spp"
                            + (f" ({excused})" if excused else ""))
             if replicated:
                 break
             if 2 * total > limit:
                 d.outcome = "inconclusive"
-                d.reason += f"; {replication}, and the budget is spent"
+                d.reason += f"; {confirmation}, and the budget is spent"
                 break
         batches.append(new)
         look += 1
     if d.outcome == "inconclusive" and 2 * total > limit and "budget" not in d.reason:
         d.reason += _spent(d, total, look + 1, start, limit < budget(start, growth),
                            reference_spp)
-    if d.outcome == "fail" and replication:
-        d.reason += f"; {replication}"
+    if d.outcome == "fail" and confirmation:
+        d.reason += f"; {confirmation}"
     return evidence.Settled(decision=d, looks=look + 1, samples=total, budget=limit,
-                            replicated=replicated, replication=replication), c
+                            replicated=replicated, replication=confirmation), c
 
 
 def _spent(d, total: int, looks: int, start: int, capped: bool, reference_spp) -> str:
