@@ -25,11 +25,10 @@ probability at most α however many looks the budget allows (Bonferroni
 next batch alone (fresh seeds, :data:`CONFIRM` × the samples so far), at
 the rejected pixels and on the image mean (replication.replicated_rejection):
 if it comes back, fail; if not, that batch joins the pool and the test goes
-on. A fail that rests on darker pixels or image mean alone, with no firefly
-in the renders,
-is confirmed on :data:`CONFIRM_UNSEEN` × the samples at the first look's spp
-(:func:`confirming_batch`): a tail the first renders missed shows there as
-fireflies, which the rules weigh. The confirming batch is rendered
+on. A fail that rests on darker pixels alone, with no firefly in the
+renders, is confirmed on :data:`CONFIRM_UNSEEN` × the samples at the first
+look's spp (:func:`confirming_batch`): a tail the first renders missed shows
+there as fireflies, which the rules weigh. The confirming batch is rendered
 even past the budget; a fail it does not confirm, with the budget spent, is
 inconclusive.
 
@@ -62,15 +61,16 @@ BATCH_RENDERS = 16
 #: seed set 3: two pixels missed at 1024 samples, agreed at 16 × 16384).
 CONFIRM = 4
 
-#: A fail that rests only on darker pixels or a darker image mean, with no
-#: firefly in the renders, rests on "no firefly, no tail". A pixel can hold
-#: a tail that K renders show as no firefly, and a confirming batch at
-#: higher spp averages each event below the firefly threshold, so it
-#: confirms whenever it misses the tail too (seed set 71: cosine sampling on
-#: probe_spheres_interior's sunless map, one pixel of the rough gold sphere;
-#: docs/measurements.md, 2026-12-04). Such a fail is confirmed on this many
-#: times the samples, rendered at the first look's spp: an event is a
-#: firefly there, and the rules weigh it.
+#: A fail that rests only on darker pixels, with no firefly in the renders,
+#: rests on "no firefly, no tail". A pixel can hold a tail that K renders
+#: show as no firefly, and a confirming batch at higher spp averages each
+#: event below the firefly threshold, so it confirms whenever it misses the
+#: tail too (seed set 71: cosine sampling on probe_spheres_interior's sunless
+#: map, one pixel of the rough gold sphere; docs/measurements.md,
+#: 2026-12-04). Such a fail is confirmed on this many times the samples,
+#: rendered at the first look's spp: an event is a firefly there, and the
+#: rules weigh it. A darker image mean is what a pdf off, a missing light or
+#: a clamp shows: its confirmation stays at CONFIRM.
 CONFIRM_UNSEEN = 16
 
 #: Renders in one batch at most: a block of the sequential seed streams.
@@ -81,12 +81,12 @@ MAX_RENDERS = min(seeds.STREAMS[s].size
 def confirming_batch(d, batches, k: int) -> tuple[int, int]:
     """(spp, renders) of the batch that confirms fail ``d`` read on
     ``batches``, the K = ``k`` renders of a look: CONFIRM × the samples so
-    far in K renders; or, for a fail that rests on darker pixels or a darker
-    image mean alone, with no firefly in the renders, :data:`CONFIRM_UNSEEN`
+    far in K renders; or, for a fail that rests on darker pixels alone (not
+    the image mean), with no firefly in the renders, :data:`CONFIRM_UNSEEN`
     × the samples at the first look's smallest spp (higher where a seed
     block, :data:`MAX_RENDERS`, cannot hold the renders that needs)."""
     total = samples(batches)
-    if d.tail_events or d.counted_up:
+    if d.tail_events or d.counted_up or (d.pooled is not None and np.any(d.pooled)):
         return max(1, math.ceil(CONFIRM * total / k)), k
     wanted = CONFIRM_UNSEEN * total
     spp = max(min(s for s, _ in batches), math.ceil(wanted / MAX_RENDERS))
