@@ -42,11 +42,17 @@ def renders(rng, scale=1.0, clamp=None, tail=True, spp=SPP, k=K):
     return np.repeat(x, 3, axis=-1)
 
 
+def fixed(mean, var=1e-6, image_var=1e-8):
+    """A reference of known ``mean`` (P, P, 3), as :class:`statistics.
+    Moments` of 10 000 renders of per-pixel variance ``var`` (the image
+    mean's: ``image_var``)."""
+    return statistics.Moments(mean, np.full((P, P, 3), var), 10_000,
+                              mean.mean(axis=(0, 1)), np.full(3, image_var))
+
+
 def reference():
     mean = np.full((P, P, 3), 1.0 + TAIL)
-    ref = statistics.Moments(mean, np.full((P, P, 3), 1e-6), 10_000,
-                             mean.mean(axis=(0, 1)), np.full(3, 1e-8))
-    return ref, mean
+    return fixed(mean), mean
 
 
 def reader(mean):
@@ -143,8 +149,7 @@ def test_real_biases_fail_at_the_first_look(bias):
     make = {"source missing": lambda: renders(rng, tail=False),
             "pdf 5% off, no tail": lambda: renders(rng, scale=1 / 1.05, tail=False)}[bias]
     if bias == "pdf 5% off, no tail":       # the truth of a tail-free scene
-        ref, mean = statistics.Moments(np.ones((P, P, 3)), np.full((P, P, 3), 1e-6), 10_000,
-                                       np.ones(3), np.full(3, 1e-8)), np.ones((P, P, 3))
+        ref, mean = fixed(np.ones((P, P, 3))), np.ones((P, P, 3))
     got = [outcome(make(), ref, mean) for _ in range(30)]
     assert got.count("fail") >= 27, got
 
@@ -207,8 +212,7 @@ def test_a_tail_no_render_showed_as_a_firefly_is_confirmed_where_it_would(monkey
     fail."""
     mean = np.ones((P, P, 3))
     mean[0, 0] = 1.3
-    ref = statistics.Moments(mean, np.full((P, P, 3), 1e-6), 10_000, mean.mean(axis=(0, 1)),
-                             np.full(3, 1e-8))
+    ref = fixed(mean)
 
     def run(rng, trials, tail=True):
         more = lambda look, spp, k: (spp, one_tail_pixel(rng, spp, k, tail))   # noqa: E731
@@ -248,8 +252,7 @@ def test_looks_spend_alpha_and_a_light_tailed_estimator_fails_at_most_alpha():
     fail at most as often as α allows."""
     assert sum(sequential.level(ALPHA, j) for j in range(10_000)) <= ALPHA
     rng = np.random.default_rng(6)
-    ref, mean = statistics.Moments(np.ones((P, P, 3)), np.full((P, P, 3), 1e-6), 10_000,
-                                   np.ones(3), np.full(3, 1e-8)), np.ones((P, P, 3))
+    ref, mean = fixed(np.ones((P, P, 3))), np.ones((P, P, 3))
     more = lambda look, spp, k: (spp, renders(rng, spp=spp, k=k, tail=False))   # noqa: E731
     got = [sequential.settle([(4, renders(rng, spp=4, k=8, tail=False))], ref, reader(mean),
                              more, 0.002, 64)[0] for _ in range(300)]
@@ -377,14 +380,13 @@ def test_a_reference_off_at_a_pixel_is_not_the_estimators_fail():
     estimator without a tail reads darker there, and its confirming batch,
     tested against the same reference, confirms it whatever its size. With
     path rendered on the confirming batch's seeds (``control``), path is as
-    dark there: no seed
-    fails, and those undecided say why; an estimator 10 % dark at that
-    pixel, which path's renders are not, still fails in every seed."""
+    dark there: no seed fails, and those undecided say why; an estimator
+    10 % dark at that pixel, which path's renders are not, still fails in
+    every seed."""
     mean = np.ones((P, P, 3))
     ref_mean = mean.copy()
     ref_mean[0, 0] = 1.02
-    ref = statistics.Moments(ref_mean, np.full((P, P, 3), 4e-6 * 10_000), 10_000,
-                             ref_mean.mean(axis=(0, 1)), np.full(3, 1e-8))
+    ref = fixed(ref_mean, var=4e-6 * 10_000)
 
     def run(seed, control, dark=1.0, trials=30):
         rng = np.random.default_rng(seed)
@@ -424,8 +426,7 @@ def rare_pixel(rng, k=8, spp=256, q=0.003, hits=None, scale=1.0):
 def rare_reference(q=0.003):
     mean = np.full((P, P, 3), 1.0)
     mean[0, 0] = 0.8 * q
-    return statistics.Moments(mean, np.full((P, P, 3), 1e-8), 10_000,
-                              mean.mean(axis=(0, 1)), np.full(3, 1e-10)), mean
+    return fixed(mean, var=1e-8, image_var=1e-10), mean
 
 
 def judged(x, path, ref, mean, spp=256, **given):
