@@ -246,6 +246,27 @@ def test_added_light_fails_even_with_a_tail():
     assert got.count("fail") >= 27, got
 
 
+def test_a_fail_of_one_biased_by_design_renders_no_confirming_batch():
+    """``confirm=False`` (an estimator biased by design): a fail stands at the
+    look that reads it, says so, and no batch is rendered for it; the same
+    renders with confirmation render one (the test can fail)."""
+    rng = np.random.default_rng(5)
+    ref, mean = reference()
+    x = renders(rng, tail=False)                       # the source missing: fails
+    asked = []
+
+    def more(look, spp, k):
+        asked.append((look, spp, k))
+        return spp, renders(rng, spp=spp, k=k, tail=False)
+
+    got, _ = sequential.settle([(SPP, x)], ref, reader(mean), more, EPSILON, GROWTH,
+                               confirm=False)
+    assert (got.decision.outcome, got.looks, asked) == ("fail", 1, [])
+    assert "not confirmed: biased by design" in got.decision.reason
+    confirmed, _ = sequential.settle([(SPP, x)], ref, reader(mean), more, EPSILON, GROWTH)
+    assert confirmed.decision.outcome == "fail" and len(asked) == 1 and confirmed.replicated
+
+
 def test_looks_spend_alpha_and_a_light_tailed_estimator_fails_at_most_alpha():
     """Σ α_j over any number of looks stays below α; 300 sequential tests of a
     correct light-tailed estimator with a tight ε (so that most render on)
@@ -498,3 +519,52 @@ def test_the_control_keeps_false_fails_at_alpha_and_the_power_on_a_twin():
     assert controlled <= stats.binom.ppf(0.999, 300, ALPHA), controlled
     twins = [ladder_outcomes(rng, 0.001, scale=0.98)[1] for _ in range(30)]
     assert twins.count("fail") == 30, twins
+
+
+def test_scenes_and_cases_render_no_batch_to_confirm_a_bias_by_design(monkeypatch):
+    """The stages' wiring of ``confirm``: in a scene comparison an estimator
+    biased by design (bayesian_hemisphere) reads its first look only and
+    confirms nothing; in a failure case it goes on where undecided but
+    confirms nothing; Monte Carlo estimators keep both (their settle calls
+    are the same but for these two arguments)."""
+    import types
+
+    from mcillum.validation.stages import scene, sun_split
+
+    calls = {}
+
+    def spy(first, reference, read, more, epsilon, growth, looks=20, **kw):
+        calls[name] = (looks, kw["confirm"], kw["control"] is not None)
+        d = evidence.Decision(outcome="pass", reason="")
+        c = types.SimpleNamespace(passed=True, pass_fraction=1.0, min_p=1.0, pooled_p=[1.0],
+                                  alpha_pixel=0.01, summary=lambda: "")
+        return evidence.Settled(decision=d, looks=1, samples=1, budget=1), c
+
+    monkeypatch.setattr(sequential, "settle", spy)
+    ref, mean = reference()
+    ref.mean, ref.spp = mean, 10_000
+    ref.moments = lambda: ref
+    x = renders(np.random.default_rng(6), k=4)
+    names = ("bayesian_hemisphere", "cosine_hemisphere")
+    run = types.SimpleNamespace(sequential=types.SimpleNamespace(
+        scene_epsilon=0.02, scene_budget=16), growth=lambda b: b)
+    ctx = types.SimpleNamespace(
+        reference=ref, run=run, plan=types.SimpleNamespace(ladder=[SPP]),
+        integrators=dict.fromkeys((*names, "path")),
+        stacks={SPP: {n: types.SimpleNamespace(images=x) for n in names}},
+        evidence={n: evidence.Evidence(comparison=object(), events=np.zeros((P, P)),
+                                       samples=SPP * 4) for n in names})
+    for name in names:                               # the spy reads `name`
+        scene.settle(types.SimpleNamespace(**{**vars(ctx), "evidence": {
+            name: ctx.evidence[name]}}))
+    assert calls == {"bayesian_hemisphere": (1, False, False),
+                     "cosine_hemisphere": (20, True, True)}
+    monkeypatch.setattr(sun_split, "terms", lambda ctx: (0.05, 1024))
+    monkeypatch.setattr(sun_split, "_reader", lambda ctx, name: None)
+    monkeypatch.setattr(sun_split.common, "first_look", lambda ctx: (SPP, 4))
+    case = types.SimpleNamespace(reference=ref, integrators=ctx.integrators)
+    monkeypatch.setattr(sun_split, "BatchTest", lambda **kw: kw)
+    for name in names:
+        sun_split.settled_test(case, name, x)
+    assert calls == {"bayesian_hemisphere": (20, False, False),
+                     "cosine_hemisphere": (20, True, True)}

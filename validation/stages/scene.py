@@ -212,7 +212,8 @@ def settle(ctx) -> None:
     """Each estimator's unbiasedness test continued on fresh batches until it
     decides or its budget is spent (stages/sequential.py): look 0 is the
     ladder, read with path's own rejections as the control; a rejection that
-    counts is confirmed on the next batch, beside path's renders of its seeds."""
+    counts is confirmed on the next batch, beside path's renders of its seeds.
+    An estimator biased by design keeps its first look's reading."""
     ref, seq = ctx.reference, ctx.run.sequential
     for name, found in ctx.evidence.items():
         if found.comparison is None:
@@ -220,12 +221,18 @@ def settle(ctx) -> None:
         first = [(spp, ctx.stacks[spp][name].images) for spp in ctx.plan.ladder]
         read = evidence.decider(ref.mean, found.reference_events, found.control,
                                 found.is_control)
+        # one biased by design has no unbiased check (checks/scene.py): its
+        # first look is its record, and no batch is rendered for it
+        designed = evidence.by_design(name)
         found.settled, c = sequential.settle(first, ref.moments(), read,
                                              sequential.renderer(ctx, name),
                                              seq.scene_epsilon,
                                              ctx.run.growth(seq.scene_budget),
+                                             looks=1 if designed else 20,
                                              reference_spp=ref.spp,
-                                             control=sequential.control_renderer(ctx, name))
+                                             control=None if designed else
+                                             sequential.control_renderer(ctx, name),
+                                             confirm=not designed)
         found.settled.summary = c.summary()
 
 

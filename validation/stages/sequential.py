@@ -30,7 +30,9 @@ renders, is confirmed on :data:`CONFIRM_UNSEEN` × the samples at the first
 look's spp (:func:`confirming_batch`): a tail the first renders missed shows
 there as fireflies, which the rules weigh. The confirming batch is rendered
 even past the budget; a fail it does not confirm, with the budget spent, is
-inconclusive.
+inconclusive. An estimator biased by design is not confirmed: its fail is
+the label of a failure case's row, and a scene comparison reads only its
+first look (it has no ``unbiased`` check).
 
 **The budget** is a multiple of the first look's samples per pixel (the
 profile's ``[sequential]``, ``mcillum validate --budget``), and at most
@@ -148,7 +150,7 @@ def budget(start: int, growth: float, reference_spp: int | None = None) -> int:
 
 def settle(first: list, reference, read, more, epsilon: float, growth: float,
            alpha: float = statistics.ALPHA, looks: int = 20,
-           reference_spp: int | None = None, control=None):
+           reference_spp: int | None = None, control=None, confirm: bool = True):
     """The sequential test (module doc) of an estimator's renders ``first``
     [(spp, (K, H, W, C))] against ``reference`` (the reference's
     :class:`statistics.Moments`): ``read(comparison, batches, look)`` the
@@ -160,7 +162,9 @@ def settle(first: list, reference, read, more, epsilon: float, growth: float,
     reference's samples per pixel (the budget stops at
     :data:`REFERENCE_LEAD` × that), ``control(look, spp, k)`` the
     reference's integrator on a confirming batch's seeds (None: none; see
-    replication.replicated_rejection). Returns
+    replication.replicated_rejection), ``confirm`` False: a fail stands at
+    the look that reads it (an estimator biased by design, whose fail is
+    its label, not a check's outcome). Returns
     (:class:`evidence.Settled`, the last look's comparison)."""
     batches = [(spp, np.asarray(x)[..., :3]) for spp, x in first]
     start = samples(batches)
@@ -173,6 +177,9 @@ def settle(first: list, reference, read, more, epsilon: float, growth: float,
         total = samples(batches)
         d = evidence.settle(read(c, batches, look), c, epsilon, total)
         if d.outcome == "pass" or (d.outcome == "inconclusive" and 2 * total > limit):
+            break
+        if d.outcome == "fail" and not confirm:
+            confirmation = "not confirmed: biased by design"
             break
         if look + 1 >= looks:
             break
