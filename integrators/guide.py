@@ -96,6 +96,11 @@ PASSES = 2                 # training passes at most, by default (each traces th
 #: cost); ¹⁄₁₆ was within the intervals of ⅛ but for the scene made for
 #: guiding, 1.23× against 1.36× `path` (docs/measurements.md, 2026-12-03).
 TRAIN_FRACTION = 0.125
+#: Guiding goes on while the learned mixture is predicted to leave at most
+#: this share of BSDF sampling's variance of the indirect light
+#: (Guide.variance_ratio): the guided kernel costs 1.2-1.5x mis's per
+#: sample, and the indirect light is only part of a pixel's variance.
+PAYS_BELOW = 0.8
 MAX_RECORDS = 1 << 22      # records per training render (longer passes split)
 FLOOR = 0.1                # uniform share of every learned pmf
 MIN_TRAINED = 128          # records a node needs to learn its own pmf
@@ -245,6 +250,39 @@ class Guide:
         parent[self.child[inner]] = inner
         parent[self.child[inner] + 1] = inner
         return parent
+
+    def variance_ratio(self, voxel, cell, li, bsdf_fraction: float) -> float:
+        """The variance of the indirect light's one-sample estimate with this
+        guide's mixture, over its variance with the BSDF's (cosine) sampling
+        alone, predicted from records (:meth:`Records.learned`): per leaf and
+        cell the records' mean L_i and L_i², with q_c the mixture's
+        probability of cell c (α/n + (1 − α)·pmf_c of the n cells, each
+        of equal cosine-weighted solid angle),
+
+            V_q = Σ_c m2_c / (n² q_c) − I²,   V_cos = Σ_c m2_c / n − I²,
+
+        I the leaf's mean L_i, summed over leaves weighted by their records
+        (the vertices they stand for). NaN where no record saw light."""
+        nb = self.res * self.res
+        nodes = len(self.child)
+        key = self.voxel_node[voxel] * nb + cell
+        count = np.bincount(key, minlength=nodes * nb).reshape(nodes, nb).astype(float)
+        first = np.bincount(key, weights=li, minlength=nodes * nb).reshape(nodes, nb)
+        second = np.bincount(key, weights=li * li, minlength=nodes * nb).reshape(nodes, nb)
+        n = count.sum(axis=1)
+        # (a cell no record fell in: its leaf's mean, as the learned pmf does)
+        m1 = np.where(count > 0, first / np.maximum(count, 1),
+                      (first.sum(axis=1) / np.maximum(n, 1))[:, None])
+        m2 = np.where(count > 0, second / np.maximum(count, 1),
+                      (second.sum(axis=1) / np.maximum(n, 1))[:, None])
+        alpha = np.where(self.trained, mixture_share(bsdf_fraction, self.indirect), 1.0)
+        q = alpha[:, None] / nb + (1 - alpha[:, None]) * self.pmf
+        mean_sq = m1.mean(axis=1) ** 2
+        v_cos = m2.mean(axis=1) - mean_sq
+        v_mix = (m2 / q).sum(axis=1) / nb ** 2 - mean_sq
+        leaves = (self.child == 0) & (n > 0)
+        below = float(np.sum(n[leaves] * v_cos[leaves]))
+        return float(np.sum(n[leaves] * v_mix[leaves])) / below if below > 0 else float("nan")
 
     def bsdf_share(self, bsdf_fraction: float) -> float:
         """Mean BSDF share α over the trained leaves (1 if none learned)."""

@@ -217,7 +217,7 @@ def test_the_training_images_join_the_result_weighted_by_their_spp(llvm):
     nothing; 0.55× on the Cornell box at 16², where what 16 spp learn is a
     poor density). With no training both are the same image."""
     scene = renders.load_scene(str(SCENES / "cornell_box.xml"), res=16)
-    quarter = {"train_fraction": 0.25}
+    quarter = {"train_fraction": 0.25, "max_variance_ratio": 1e30}     # (every density kept)
     both = renders.make_integrator("guided_path", quarter)
     alone = renders.make_integrator("guided_path", {**quarter, "combine_passes": False})
     v_both, mean_both = pixel_variance(scene, both, 64, seeds=10)
@@ -240,12 +240,14 @@ def test_mixture_share_runs_from_bsdf_fraction_to_one():
 def test_scalar_variant_learns_and_renders(use_variant):
     use_variant("scalar_rgb")
     scene = renders.load_scene(ROOM, res=10)
-    guided = renders.make_integrator("guided_path", {"max_depth": 3})
+    # (every density kept: what 10² × 2 spp learn is predicted to pay too little)
+    guided = renders.make_integrator("guided_path", {"max_depth": 3, "max_variance_ratio": 1e30})
     out = renders.render(scene, guided, 32, seed=1)
     assert np.isfinite(out.image).all() and out.image.mean() > 0
     assert [t["spp"] for t in guided.training] == guide().training_passes(
         32, guide().TRAIN_FRACTION)
     assert guided.training[0]["records"] > 0 and guided.training[-1]["trained_leaves"] > 0
+    assert 0 < guided.training[0]["variance_ratio"] < 10, guided.training
 
 
 def test_where_nothing_arrives_indirectly_it_stops_learning(llvm):
@@ -257,6 +259,33 @@ def test_where_nothing_arrives_indirectly_it_stops_learning(llvm):
     renders.render(scene, guided, 64, seed=0)
     assert len(guided.training) == 1 and guided.training[0]["records"] > 0
     assert guided.training[0]["trained_leaves"] == 0
+
+
+def test_a_density_that_pays_too_little_is_dropped_and_the_rest_renders_as_mis(llvm):
+    """sky_sphere (a smooth sky: light mostly direct) at 64² × 64 spp: what the
+    first pass learns is predicted to leave over 0.8 of BSDF sampling's
+    variance of the indirect light (0.98 here), so training stops there and
+    the rest renders as mis (whose mean it keeps); the same render with
+    every density kept trains twice. sunlit_room_hole (all light indirect,
+    through a hole) predicts about 0.5, then 0.3: it keeps guiding. And
+    the setting is checked."""
+    sky = renders.load_scene(str(SCENES / "sky_sphere.xml"), res=64)
+    dropped = renders.make_integrator("guided_path", {})
+    kept = renders.make_integrator("guided_path", {"max_variance_ratio": 1e30})
+    mean = renders.render(sky, dropped, 64, seed=2).image.mean()
+    renders.render(sky, kept, 64, seed=2)
+    assert len(dropped.training) == 1 and dropped.training[0]["variance_ratio"] > 0.8, \
+        dropped.training
+    assert len(kept.training) == 2 and kept.training[0]["variance_ratio"] > 0.8
+    mis = renders.render(sky, renders.make_integrator("mis", {}), 64, seed=2).image.mean()
+    assert abs(mean / mis - 1) < 0.02, (mean, mis)
+    hole = renders.load_scene(ROOM, res=64, gap="hole", sun=500)
+    guided = renders.make_integrator("guided_path", {})
+    renders.render(hole, guided, 64, seed=2)
+    assert len(guided.training) == 2 and guided.training[-1]["variance_ratio"] < 0.6, \
+        guided.training
+    with pytest.raises(Exception, match="max_variance_ratio"):
+        mi.load_dict({"type": "guided_path", "max_variance_ratio": 0.0})
 
 
 def test_nested_in_moment_it_renders_as_mis(llvm):
@@ -318,7 +347,8 @@ def test_the_learning_stage_asks_for_the_passes_the_plugin_makes(llvm):
 
 def test_train_passes_is_honoured_and_checked(llvm):
     scene = renders.load_scene(ROOM, res=8)
-    guided = renders.make_integrator("guided_path", {"train_passes": 3, "train_fraction": 0.5})
+    guided = renders.make_integrator("guided_path", {"train_passes": 3, "train_fraction": 0.5,
+                                                     "max_variance_ratio": 1e30})
     renders.render(scene, guided, 64, seed=0)
     assert [t["spp"] for t in guided.training] == guide().training_passes(64, 0.5, 3)
     assert len(guided.training) == 3

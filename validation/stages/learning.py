@@ -30,6 +30,8 @@ from . import common
 PASSES = (0, 1, 2, 3, 4)
 #: Renders per point at most (the plan's K, if fewer).
 RENDERS = 8
+#: guided_path's max_variance_ratio that keeps whatever it learned.
+KEEP_EVERY_DENSITY = 1e30
 
 
 def learners(names) -> list[str]:
@@ -63,8 +65,12 @@ def measure(ctx) -> None:
         points = []
         # (the image's own samples alone: guided_path would otherwise average
         # its training passes' images in, and the curve would mix the two)
-        alone = {"combine_passes": False} if hasattr(ctx.integrators[name].made,
-                                                     "combine_passes") else {}
+        made = ctx.integrators[name].made
+        alone = {"combine_passes": False} if hasattr(made, "combine_passes") else {}
+        # (and every pass's density kept: the curve shows what was learned,
+        # not the plugin's choice to drop a density that pays too little)
+        if hasattr(made, "max_variance_ratio"):
+            alone["max_variance_ratio"] = KEEP_EVERY_DENSITY
         for j in PASSES:
             total, params = training(spp, j)
             params = {**params, **alone}
