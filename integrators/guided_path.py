@@ -182,17 +182,16 @@ class GuidedPathIntegrator(IlluminationEstimator):
     its cells' mean L_i, so the density is ∝ indirect L_i cos θ, with the
     means taken over a quadtree that refines where light concentrates (cells
     above ``directional_threshold`` of the leaf's light) and stays coarse
-    where records are few. Where
-    nothing arrives indirectly the first pass learns nothing and training
-    stops; where what was learned is predicted to cut the indirect light's
-    variance to no less than ``max_variance_ratio`` of BSDF sampling's
-    (a smooth sky, light mostly direct) it stops too, and the rest of the
-    samples render as ``mis``. Every pass's image is unbiased, whatever density drew it, so the
-    result (``combine_passes``) is their average weighted by spp: the mean
-    of all the render's samples, none of the training samples lost; its
-    wall time includes the learning. Nested in another
-    integrator (``moment``, which calls ``sample`` only) nothing is learned
-    and it renders as ``mis``.
+    where records are few. Where nothing arrives indirectly the first pass
+    learns nothing and training stops; where what was learned is predicted
+    to leave more than ``max_variance_ratio`` of BSDF sampling's variance of
+    the indirect light (a smooth sky, light mostly direct) it stops too, and
+    the rest of the samples render as ``mis``. Every pass's image is
+    unbiased, whatever density drew it, so the result (``combine_passes``)
+    is their average weighted by spp: the mean of all the render's samples,
+    none of the training samples lost; its wall time includes the learning.
+    Nested in another integrator (``moment``, which calls ``sample`` only)
+    nothing is learned and it renders as ``mis``.
 
     .. tabs::
 

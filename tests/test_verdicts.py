@@ -533,7 +533,7 @@ def test_scenes_and_cases_render_no_batch_to_confirm_a_bias_by_design(monkeypatc
 
     calls = {}
 
-    def spy(first, reference, read, more, epsilon, growth, looks=20, **kw):
+    def spy(first, reference, read, more, epsilon, growth, looks=sequential.LOOKS, **kw):
         calls[name] = (looks, kw["confirm"], kw["control"] is not None)
         d = evidence.Decision(outcome="pass", reason="")
         c = types.SimpleNamespace(passed=True, pass_fraction=1.0, min_p=1.0, pooled_p=[1.0],

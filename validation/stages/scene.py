@@ -228,7 +228,7 @@ def settle(ctx) -> None:
                                              sequential.renderer(ctx, name),
                                              seq.scene_epsilon,
                                              ctx.run.growth(seq.scene_budget),
-                                             looks=1 if designed else 20,
+                                             looks=1 if designed else sequential.LOOKS,
                                              reference_spp=ref.spp,
                                              control=None if designed else
                                              sequential.control_renderer(ctx, name),

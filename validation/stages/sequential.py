@@ -148,8 +148,12 @@ def budget(start: int, growth: float, reference_spp: int | None = None) -> int:
     return max(start, min(full, REFERENCE_LEAD * reference_spp)) if reference_spp else full
 
 
+#: Looks a test may take at most: the seed blocks of the sequential streams.
+LOOKS = 20
+
+
 def settle(first: list, reference, read, more, epsilon: float, growth: float,
-           alpha: float = statistics.ALPHA, looks: int = 20,
+           alpha: float = statistics.ALPHA, looks: int = LOOKS,
            reference_spp: int | None = None, control=None, confirm: bool = True):
     """The sequential test (module doc) of an estimator's renders ``first``
     [(spp, (K, H, W, C))] against ``reference`` (the reference's
