@@ -145,6 +145,8 @@ class Guide:
         self.pmf = np.full((1, res * res), 1.0 / (res * res))
         self.trained = np.zeros(1, bool)
         self.indirect = np.zeros(1)              # share of the light arriving indirectly
+        # per node and cell the records' count, Σ L_i and Σ L_i² (None: not learned)
+        self.counts = self.sums = self.squares = None
         self.voxel_node = np.zeros(GRID ** 3, np.int64)   # leaf of every voxel: the root
 
     @property
@@ -191,13 +193,16 @@ class Guide:
         key = node * nb + cell
         hits = np.bincount(key, minlength=nodes * nb).reshape(nodes, nb).astype(float)
         total = np.bincount(key, weights=li, minlength=nodes * nb).reshape(nodes, nb)
+        squares = np.bincount(key, weights=li * li, minlength=nodes * nb).reshape(nodes, nb)
         direct = np.bincount(node, weights=ld, minlength=nodes)
         for k in reversed(range(nodes)):     # (an inner node's sums are its children's)
             first = int(g.child[k])
             if first:
                 hits[k] = hits[first] + hits[first + 1]
                 total[k] = total[first] + total[first + 1]
+                squares[k] = squares[first] + squares[first + 1]
                 direct[k] = direct[first] + direct[first + 1]
+        g.counts, g.sums, g.squares = hits, total, squares
         own = (hits.sum(axis=1) >= MIN_TRAINED) & (total.sum(axis=1) > 0)
         means = refined_means(hits, total, res, refine)
         pmf = (1 - FLOOR) * means / np.maximum(means.sum(axis=1, keepdims=True), 1e-30) \
@@ -251,10 +256,10 @@ class Guide:
         parent[self.child[inner] + 1] = inner
         return parent
 
-    def variance_ratio(self, voxel, cell, li, bsdf_fraction: float) -> float:
+    def variance_ratio(self, bsdf_fraction: float) -> float:
         """The variance of the indirect light's one-sample estimate with this
         guide's mixture, over its variance with the BSDF's (cosine) sampling
-        alone, predicted from records (:meth:`Records.learned`): per leaf and
+        alone, predicted from the records it learned from: per leaf and
         cell the records' mean L_i and L_i², with q_c the mixture's
         probability of cell c (α/n + (1 − α)·pmf_c of the n cells, each
         of equal cosine-weighted solid angle),
@@ -262,13 +267,11 @@ class Guide:
             V_q = Σ_c m2_c / (n² q_c) − I²,   V_cos = Σ_c m2_c / n − I²,
 
         I the leaf's mean L_i, summed over leaves weighted by their records
-        (the vertices they stand for). NaN where no record saw light."""
+        (the vertices they stand for). NaN where no leaf learned."""
+        if self.counts is None or not self.trained_leaves:
+            return float("nan")
         nb = self.res * self.res
-        nodes = len(self.child)
-        key = self.voxel_node[voxel] * nb + cell
-        count = np.bincount(key, minlength=nodes * nb).reshape(nodes, nb).astype(float)
-        first = np.bincount(key, weights=li, minlength=nodes * nb).reshape(nodes, nb)
-        second = np.bincount(key, weights=li * li, minlength=nodes * nb).reshape(nodes, nb)
+        count, first, second = self.counts, self.sums, self.squares
         n = count.sum(axis=1)
         # (a cell no record fell in: its leaf's mean, as the learned pmf does)
         m1 = np.where(count > 0, first / np.maximum(count, 1),

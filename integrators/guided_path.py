@@ -278,8 +278,7 @@ class GuidedPathIntegrator(IlluminationEstimator):
                 pooled = [np.concatenate(c) for c in zip(*records)]
                 guide = Guide.learn(self.directional_res, *pooled, self.spatial_threshold,
                                     self.directional_threshold)
-                ratio = (guide.variance_ratio(*pooled[:3], self.bsdf_fraction)
-                         if guide.trained_leaves else float("nan"))
+                ratio = guide.variance_ratio(self.bsdf_fraction)
                 self.training.append({"spp": n, "records": len(pooled[0]),
                                       "leaves": guide.leaves,
                                       "trained_leaves": guide.trained_leaves,
