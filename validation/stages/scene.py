@@ -230,8 +230,7 @@ def settle(ctx) -> None:
                                              ctx.run.growth(seq.scene_budget),
                                              looks=1 if designed else sequential.LOOKS,
                                              reference_spp=ref.spp,
-                                             control=None if designed else
-                                             sequential.control_renderer(ctx, name),
+                                             control=sequential.control_renderer(ctx, name),
                                              confirm=not designed)
         found.settled.summary = c.summary()
 

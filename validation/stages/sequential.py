@@ -127,8 +127,9 @@ def control_renderer(ctx, name: str):
     """``control(look, spp, k)`` for :func:`settle` of estimator ``name``:
     `path`, the reference's integrator, on the same seeds as a confirming
     batch (kept under its shape: estimators confirm at their own spp); None
-    for path itself or where the context does not render it."""
-    if name == REFERENCE or REFERENCE not in ctx.integrators:
+    for path itself, for an estimator biased by design (it confirms nothing:
+    :func:`settle`'s ``confirm``) or where the context does not render it."""
+    if name == REFERENCE or REFERENCE not in ctx.integrators or evidence.by_design(name):
         return None
     return lambda look, spp, k: batch(ctx, REFERENCE, look, spp, k, f"control-{spp}x{k}")
 

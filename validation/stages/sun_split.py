@@ -87,12 +87,11 @@ def settled_test(ctx, name: str, x: np.ndarray) -> BatchTest:
     epsilon, growth = terms(ctx)
     # an estimator biased by design: its fail is its label (checks/cases.py),
     # not worth a confirming batch (up to 1 000 renders of N directions)
-    confirm = not evidence.by_design(name)
     settled, c = sequential.settle([(common.first_look(ctx)[0], x)], ctx.reference.moments(),
                                    _reader(ctx, name), sequential.renderer(ctx, name),
                                    epsilon, growth, reference_spp=ctx.reference.spp,
-                                   control=sequential.control_renderer(ctx, name) if confirm
-                                   else None, confirm=confirm)
+                                   control=sequential.control_renderer(ctx, name),
+                                   confirm=not evidence.by_design(name))
     d = settled.decision
     return BatchTest(passed=c.passed, pass_fraction=c.pass_fraction, min_p=c.min_p,
                      pooled_p=[float(p) for p in c.pooled_p], alpha_pixel=c.alpha_pixel,
