@@ -65,6 +65,9 @@ def test_every_field_of_a_bundled_profile_is_what_its_file_says(name):
     assert len(profile.runs) == len(raw["scenes"])
     for run, entry in zip(profile.runs, raw["scenes"]):
         fields = {k: _as_read(v) for k, v in entry.items()}
+        if isinstance(fields.get("display"), dict):      # its own keys over [display]'s
+            fields["display"] = dataclasses.replace(
+                default, **{k: _as_read(v) for k, v in fields["display"].items()})
         assert run == SceneRun(**{"display": default, **fields}), entry
     assert len(profile.failures) == len(raw["failures"])
     for case, entry in zip(profile.failures, raw["failures"]):
@@ -201,6 +204,26 @@ def test_a_users_file_has_its_paths_made_absolute(tmp_path, monkeypatch):
     assert case.id == "failures.glossy.glossy"      # a file's stem names it, not its path
     assert case.sweep == ("alpha", (0.5, 0.1))
     assert profile_files.read(folder / "mine.toml") == profile
+
+
+def test_a_scenes_display_table_takes_what_it_leaves_out_from_the_profiles(tmp_path):
+    """``display = {res = 64}`` changes the resolution only: the budgets,
+    renders and pilot are the profile's [display]'s (the quick profile's
+    cap_plane relies on it); without a [display], Display's defaults."""
+    path = tmp_path / "m.toml"
+    path.write_text('name = "m"\n[display]\nres = 128\npath_spp = [4, 16]\nrenders = 3\n'
+                    'repeats = 2\n[user_scenes]\nres = 16\nladder = [4]\nrenders = 2\n'
+                    'display = { renders = 5, res = 32 }\n'
+                    + scene(extra="display = { res = 64 }") + scene("cap_plane")
+                    + scene("sky_sphere", extra="display = false"))
+    own, inherited, none = profile_files.read(path).runs
+    assert own.display == Display(res=64, path_spp=(4, 16), renders=3, repeats=2)
+    assert inherited.display == Display(res=128, path_spp=(4, 16), renders=3, repeats=2)
+    assert none.display is None
+    assert profile_files.read(path).user_scenes.display == Display(
+        res=32, path_spp=(4, 16), renders=5, repeats=2)
+    path.write_text('name = "m"\n' + scene(extra="display = { res = 64 }"))
+    assert profile_files.read(path).runs[0].display == Display(res=64)
 
 
 def test_a_scene_file_belongs_in_scene_files_and_needs_user_scenes(tmp_path):

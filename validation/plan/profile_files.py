@@ -18,7 +18,7 @@ The format (quick.toml is a worked example; SCHEMA lists every key)::
     res = 8
     ladder = [32, 128, 512, 2048]
     renders = 16
-    display = false                 # none; or {res = 64} (its own)
+    display = false                 # none; or {res = 64}: its own, the rest from [display]
     learning = true                 # optional: the learning stage (stages/learning.py)
     [[failures]]                    # one per failure case; for a glossy one:
     sweep = {parameter = "alpha", values = [0.5, 0.1, 0.02]}
@@ -31,6 +31,7 @@ Paths (a scene with '/' or ending in .xml, a plugin with '/' or ending in
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import os
 import re
@@ -137,7 +138,7 @@ def _value(kind: str, v, where: str):
             return None
         if not isinstance(v, dict):
             raise _Invalid(f"{where}: must be a table or false, got {_show(v)}")
-        return Display(**_table(v, "display", where))
+        return _table(v, "display", where)         # (a Display in read(): _display)
     if kind == "defines":
         for k, x in _table(v, None, where).items():
             if isinstance(x, (list, dict)):
@@ -231,14 +232,14 @@ def read(path) -> Profile:
     folder = os.path.dirname(source)
     try:
         top = _table(_load(name), "profile", "")
-        display = top.pop("display", None)
+        display = _display(top, None)
         user = top.pop("user_scenes", None)
         entries = top.pop("scenes", [])
         for i, e in enumerate(entries):
             if _located(e["scene"], folder, ".xml") != e["scene"]:
                 raise _Invalid(f"scenes[{i}].scene: '{e['scene']}' is a file: a scene file "
                                "goes in scene_files = [...], compared by [user_scenes]")
-        runs = tuple(SceneRun(**{"display": display, **e}) for e in entries)
+        runs = tuple(SceneRun(display=_display(e, display), **e) for e in entries)
         failures = tuple(FailureCase(**_case_scene(e, folder)) for e in top.pop("failures", []))
         _unique(runs, "scenes")
         _unique(failures, "failures")
@@ -252,8 +253,21 @@ def read(path) -> Profile:
             raise UsageError(f"{name}: scene_files needs a [user_scenes] table (how a scene "
                              "file is compared: res, ladder, renders)")
     return Profile(**top, runs=runs, failures=failures, source=source,
-                   user_scenes=None if user is None else UserScenes(**{"display": display,
-                                                                      **user}))
+                   user_scenes=None if user is None else UserScenes(
+                       display=_display(user, display), **user))
+
+
+def _display(table: dict, default: Display | None) -> Display | None:
+    """The display stage ``table`` holds, popped from it: none where it says
+    ``false``, ``default`` where it has none; its own keys over the
+    profile's [display] (``default``), the rest from there (or Display's
+    defaults where the profile has none)."""
+    if "display" not in table:
+        return default
+    own = table.pop("display")
+    if own is None:
+        return None
+    return Display(**{**(dataclasses.asdict(default) if default else {}), **own})
 
 
 def _unknown(name: str) -> UsageError:
