@@ -8,10 +8,25 @@ import numpy as np
 from mcillum import files
 
 
+#: The brightest a reference's median pixel is shown (linear; sRGB 0.74).
+#: On a flat image (cap_plane's disk fills its frame) the 99th percentile
+#: is the median, and mapping it to 1 showed every render white, its noise
+#: above the mean clipped away.
+MEDIAN_AT_MOST = 0.5
+
+
 def exposure_for(reference: np.ndarray) -> float:
-    """EV (in half stops) that maps the reference's 99th percentile to 1."""
-    p = float(np.percentile(reference[..., :3], 99))
-    return 0.0 if p <= 0 else float(np.round(-np.log2(p) * 2) / 2)
+    """EV in half stops: the one that maps the reference's 99th percentile to
+    1, or, where that shows its median brighter than MEDIAN_AT_MOST, the
+    largest that does not (0 for a black reference)."""
+    x = reference[..., :3]
+    p, median = float(np.percentile(x, 99)), float(np.median(x))
+    if p <= 0:
+        return 0.0
+    ev = float(np.round(-np.log2(p) * 2) / 2)
+    if median > 0:
+        ev = min(ev, float(np.floor(np.log2(MEDIAN_AT_MOST / median) * 2) / 2))
+    return ev
 
 
 def tonemap(image: np.ndarray, exposure: float = 0.0) -> np.ndarray:

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from mcillum import files
+from mcillum import files, images
 from mcillum.validation import report, results
 from mcillum.validation.report import charts, parts
 from mcillum.validation.report import scenes as scene_section
@@ -510,3 +510,20 @@ def test_strict_exit_code_counts_inconclusive_checks(tmp_path, monkeypatch, caps
 def test_tone_mapping_scale_reads_plainly(ev, text):
     """An exposure that rounds to 0 reads as `x`, not `x·2^-0.0`."""
     assert scene_section._scaling(ev) == text
+
+
+def test_a_flat_reference_is_shown_grey_with_room_for_its_noise():
+    """cap_plane's disk fills its frame (every pixel 0.584): the 99th
+    percentile mapped to 1 showed its renders white, noise above the mean
+    clipped. A lit scene keeps its 99th percentile at 1 (the median rule
+    only ever darkens)."""
+    rng = np.random.default_rng(3)
+    flat = np.full((16, 16, 3), 0.584)
+    ev = images.exposure_for(flat)
+    assert 0.25 < 0.584 * 2 ** ev <= images.MEDIAN_AT_MOST
+    noisy = flat * rng.uniform(0.5, 1.5, flat.shape)
+    assert np.mean(images.tonemap(noisy, ev) == 255) < 0.01
+    lit = np.full((16, 16, 3), 0.04)
+    lit[:3, :3] = 9.0                                  # a light: 3.5 % of the pixels
+    assert images.exposure_for(lit) == np.round(-np.log2(9.0) * 2) / 2
+    assert images.exposure_for(np.zeros((4, 4, 3))) == 0.0
