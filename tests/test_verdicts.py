@@ -431,6 +431,37 @@ def test_a_reference_off_at_a_pixel_is_not_the_estimators_fail():
     assert [d.outcome for d in run(11, control=True, dark=0.9)].count("fail") == 30
 
 
+def test_the_control_is_rendered_only_where_a_rejection_came_back():
+    """path beside a confirming batch is read only at what came back in it:
+    a first look 10 % dark at one pixel whose confirming batch is not
+    renders no control (f91's full run: 20 s of controls nothing read);
+    an estimator dark there throughout renders it at every confirmation."""
+    mean = np.ones((P, P, 3))
+    ref = fixed(mean, var=4e-6 * 10_000)
+    rng = np.random.default_rng(12)
+
+    def draw(spp, k, scale):
+        x = 1.0 + rng.normal(0, SIGMA / np.sqrt(spp), (k, P, P, 1))
+        x[:, 0, 0] *= scale
+        return np.repeat(x, 3, axis=-1)
+
+    def run(later):
+        calls = []
+
+        def control(look, spp, k):
+            calls.append(look)
+            return spp, draw(spp, k, 1.0)
+        d = sequential.settle([(1024, draw(1024, K, 0.9))], ref, reader(mean),
+                              lambda look, spp, k: (spp, draw(spp, k, later)), EPSILON, 16,
+                              control=control)[0]
+        return d, calls
+
+    fluke, calls = run(later=1.0)
+    assert "not replicated" in fluke.replication and calls == [], (fluke, calls)
+    real, calls = run(later=0.9)
+    assert real.decision.outcome == "fail" and real.replicated and calls == [1], (real, calls)
+
+
 # ------------------------- path's own renders as the control -------------------------
 
 def rare_pixel(rng, k=8, spp=256, q=0.003, hits=None, scale=1.0):

@@ -166,7 +166,8 @@ def settle(first: list, reference, read, more, epsilon: float, growth: float,
     ``looks`` the most looks there are seeds for, ``reference_spp`` the
     reference's samples per pixel (the budget stops at
     :data:`REFERENCE_LEAD` × that), ``control(look, spp, k)`` the
-    reference's integrator on a confirming batch's seeds (None: none; see
+    reference's integrator on a confirming batch's seeds, rendered only
+    where a rejection came back in it (None: none; see
     replication.replicated_rejection), ``confirm`` False: a fail stands at
     the look that reads it (an estimator biased by design, whose fail is
     its label, not a check's outcome). Returns
@@ -195,7 +196,7 @@ def settle(first: list, reference, read, more, epsilon: float, growth: float,
             fresh = [new]
             replicated, _, again, excused = replication.replicated_rejection(
                 c, d, new[1], reference, alpha, lambda comp, y: read(comp, fresh, -1),
-                control(look + 1, spp, renders)[1] if control else None)
+                (lambda: control(look + 1, spp, renders)[1]) if control else None)
             confirmation = (f"{'replicated' if replicated else 'not replicated'} in "
                            f"{renders} fresh renders at {spp} spp"
                            + (f" ({excused})" if excused else ""))
