@@ -16,7 +16,7 @@ import pytest
 from mcillum.validation import cli, pipeline
 from mcillum.validation.plan import profiles
 from mcillum.validation.run import executors, jobs, references
-from mcillum.validation.stages import common
+from mcillum.validation.stages import common, sequential
 from mcillum.validation.stages.context import Context, Run
 
 
@@ -45,6 +45,60 @@ def test_a_job_travels_without_its_objects_and_renders_the_same(llvm, tmp_path):
     assert np.array_equal(here.image, there.image)
     other = executors.Local().render([jobs.Job(job.scene, job.integrator, 16, 8)])[0]
     assert not np.array_equal(here.image, other.image)     # (the seed decides)
+
+
+#: A user's scene with a Gaussian reconstruction filter (radius 2 px) over a
+#: checkerboard: a pixel's value takes samples from its neighbours' area.
+EDGE = """<scene version="3.0.0">
+    <default name="res" value="16"/>
+    <integrator type="path"><integer name="max_depth" value="2"/></integrator>
+    <sensor type="orthographic">
+        <transform name="to_world"><lookat origin="0, 0, 3" target="0, 0, 0" up="0, 1, 0"/>
+        </transform>
+        <film type="hdrfilm"><integer name="width" value="$res"/>
+            <integer name="height" value="$res"/><rfilter type="gaussian"/></film>
+    </sensor>
+    <emitter type="constant"><rgb name="radiance" value="1"/></emitter>
+    <shape type="rectangle">
+        <transform name="to_world"><scale value="0.5"/></transform>
+        <bsdf type="diffuse"><texture type="checkerboard" name="reflectance">
+            <rgb name="color0" value="0.05"/><rgb name="color1" value="0.9"/>
+            <transform name="to_uv"><scale value="3"/></transform></texture></bsdf>
+    </shape>
+</scene>
+"""
+
+
+def test_path_beside_a_confirmation_renders_windows_around_the_pixels_read(llvm, tmp_path):
+    """Where only some pixels' rejections came back, path is rendered in
+    windows around them (a cropped film, through a job that travels) with
+    the filter's reach around each: there it agrees with path on the whole
+    film. A window's own edge pixels do not (they miss the samples of
+    neighbours outside): without the border, the pixels read would be those."""
+    scene = tmp_path / "edge.xml"
+    scene.write_text(EDGE)
+    ctx = _context(tmp_path, str(scene), {}, res=16)
+    ctx.id = "edge"                                 # (as a scene file's run names it)
+    ctx.integrators = {"path": jobs.make("path", ctx.params)}
+    control = sequential.control_renderer(ctx, "cosine_hemisphere")
+    pixels = np.zeros((16, 16), bool)
+    pixels[5, 6] = pixels[10, 9] = True
+    assert sequential.windows(pixels, 2) == [(4, 3, 5, 5), (7, 8, 5, 5)]
+    k, spp = 16, 1024
+    whole = control(1, spp, k)[1]
+    around = np.full_like(whole, -1.0)
+    part = control(1, spp, k, pixels, around)[1]
+    inside = np.zeros((16, 16), bool)
+    inside[3:8, 4:9] = inside[8:13, 7:12] = True
+    assert np.all(part[:, ~inside] == -1.0) and np.all(part[:, inside] >= 0.0)
+    t = np.abs(whole.mean(0) - part.mean(0)) / np.sqrt(
+        (whole.var(0, ddof=1) + part.var(0, ddof=1)) / k + 1e-30)
+    assert t[pixels].max() < 4, t[pixels]
+    edges = inside.copy()
+    edges[4:7, 5:8] = edges[9:12, 8:11] = False
+    assert t[edges].max() > 6, t[edges]            # measured: 30-100
+    files = os.listdir(os.path.join(ctx.run.out_dir, "renders", ctx.id))
+    assert sum("-crop" in f for f in files) == 2, files
 
 
 @pytest.mark.parametrize("scene, defines", [("lone_sphere", {"envmap": "sg"}),

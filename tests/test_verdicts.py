@@ -417,7 +417,7 @@ def test_a_reference_off_at_a_pixel_is_not_the_estimators_fail():
             x[:, 0, 0] *= scale
             return np.repeat(x, 3, axis=-1)
         more = lambda look, spp, k: (spp, draw(spp, k, dark))   # noqa: E731
-        path = (lambda look, spp, k: (spp, draw(spp, k))) if control else None   # noqa: E731
+        path = (lambda look, spp, k, *_: (spp, draw(spp, k))) if control else None   # noqa: E731
         return [sequential.settle([(1024, draw(1024, K, dark))], ref, reader(mean), more,
                                   EPSILON, 16, control=path)[0].decision
                 for _ in range(trials)]
@@ -448,7 +448,7 @@ def test_the_control_is_rendered_only_where_a_rejection_came_back():
     def run(later):
         calls = []
 
-        def control(look, spp, k):
+        def control(look, spp, k, *_):
             calls.append(look)
             return spp, draw(spp, k, 1.0)
         d = sequential.settle([(1024, draw(1024, K, 0.9))], ref, reader(mean),
@@ -599,3 +599,22 @@ def test_scenes_and_cases_render_no_batch_to_confirm_a_bias_by_design(monkeypatc
         sun_split.settled_test(case, name, x)
     assert calls == {"bayesian_hemisphere": (20, False, False),
                      "cosine_hemisphere": (20, True, True)}
+
+
+def test_the_windows_around_the_pixels_read_merge_clip_and_give_up():
+    """Each pixel with ``border`` pixels around it, clipped to the film;
+    overlapping windows merged; more than WINDOWS, or half the film: the
+    whole film (None)."""
+    px = np.zeros((32, 32), bool)
+    px[0, 0] = True                                      # clipped at the corner
+    assert sequential.windows(px, 2) == [(0, 0, 3, 3)]
+    px[3, 3] = True                                      # overlaps the first
+    assert sequential.windows(px, 2) == [(0, 0, 6, 6)]
+    px[20, 25] = True
+    assert sequential.windows(px, 0) == [(0, 0, 1, 1), (3, 3, 1, 1), (25, 20, 1, 1)]
+    many = np.zeros((32, 32), bool)
+    many[::8, ::8] = True                                # 16 pixels, 8 apart
+    assert len(sequential.windows(many[:16, :16], 1)) == 4
+    assert sequential.windows(many, 1) is None
+    assert sequential.windows(np.ones((4, 4), bool)) is None
+    assert sequential.windows(np.zeros((4, 4), bool)) is None

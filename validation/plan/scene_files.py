@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import os
 import xml.etree.ElementTree as ET
+from typing import NamedTuple
 
 from . import scenes
 
@@ -156,12 +157,23 @@ def film_size(path: str, defines: dict | None = None) -> tuple[int, int]:
     return size[0], size[1]
 
 
-def with_film(path: str, film: tuple[int, int], defines: dict | None = None
+class Film(NamedTuple):
+    """A film's size, and the window of it rendered (None: all of it).
+    One value, so that it passes through run/renders.load_resolved as a
+    (width, height) does: that module's source keys every kept render and
+    cached reference."""
+
+    width: int
+    height: int
+    crop: tuple[int, int, int, int] | None = None     # (x, y, width, height)
+
+
+def with_film(path: str, film: tuple[int, int] | Film, defines: dict | None = None
               ) -> tuple[str, list[str]]:
     """(the scene's XML, includes inlined, with the first sensor's film at
-    ``film`` = (width, height) and no crop window; the folders its relative
-    paths resolve from). Raises :class:`SceneFileError` for a scene without
-    a ``<sensor>``."""
+    ``film`` = (width, height), and its crop window a :class:`Film`'s or
+    none; the folders its relative paths resolve from). Raises
+    :class:`SceneFileError` for a scene without a ``<sensor>``."""
     root, folders = inlined(path, defines)
     sensor = root.find("sensor")
     if sensor is None:
@@ -174,6 +186,10 @@ def with_film(path: str, film: tuple[int, int], defines: dict | None = None
         if child.get("name") in ("width", "height", "crop_width", "crop_height",
                                  "crop_offset_x", "crop_offset_y"):
             film_element.remove(child)
-    for name, value in zip(("width", "height"), film):
+    sizes = dict(zip(("width", "height"), film[:2]))
+    crop = getattr(film, "crop", None)
+    if crop is not None:
+        sizes.update(zip(("crop_offset_x", "crop_offset_y", "crop_width", "crop_height"), crop))
+    for name, value in sizes.items():
         ET.SubElement(film_element, "integer", {"name": name, "value": str(int(value))})
     return ET.tostring(root, encoding="unicode"), folders

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 from mcillum import files as mcillum_files
 
 from ..plan import scenes
+from ..plan.scene_files import Film
 from . import renders
 
 
@@ -43,6 +44,12 @@ class SceneSpec:
     defines: tuple[tuple[str, str], ...]       # renders.resolve_defines' output
     key: str                                   # references.cache_key: the content hash
     film: tuple[int, int] | None = None        # a user's scene at a reduced film
+    crop: tuple[int, int, int, int] | None = None  # (x, y, w, h): that window of the film
+
+    @property
+    def loaded(self) -> tuple:
+        """What a loaded scene is kept by: its content and its window."""
+        return self.key, self.crop
 
 
 @dataclass(frozen=True)
@@ -126,13 +133,14 @@ class Workshop:
         """The scene of ``spec``, loaded once per content key: from its own
         files when they are here with the same bytes, else from a copy of
         ``files()`` in this node's cache."""
-        if spec.key not in self.scenes:
-            self.scenes[spec.key] = renders.load_resolved(*self._local(spec, files),
-                                                          film=spec.film)
+        if spec.loaded not in self.scenes:
+            film = spec.film if spec.crop is None else Film(*spec.film, spec.crop)
+            self.scenes[spec.loaded] = renders.load_resolved(*self._local(spec, files),
+                                                             film=film)
             while len(self.scenes) > SCENES_KEPT:
                 self.scenes.popitem(last=False)
-        self.scenes.move_to_end(spec.key)
-        return self.scenes[spec.key]
+        self.scenes.move_to_end(spec.loaded)
+        return self.scenes[spec.loaded]
 
     def _local(self, spec: SceneSpec, files) -> tuple[str, dict]:
         defines = dict(spec.defines)

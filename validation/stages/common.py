@@ -11,6 +11,7 @@ are the checks' (:mod:`~mcillum.validation.checks`).
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import hashlib
 import json
@@ -18,7 +19,7 @@ import os
 
 from mcillum.integrators import registry, scene_checks
 
-from ..plan import scenes, seeds
+from ..plan import scene_files, scenes, seeds
 from ..results import ReferenceSummary
 from ..run import jobs, references, renders, stacks
 
@@ -78,6 +79,22 @@ def choose_estimators(ctx) -> None:
                    f"it defines max_depth {', '.join(map(str, facts.depths or ()))} only, "
                    f"not {ctx.max_depth}")
             ctx.scene_notes.append(f"{name} does not render this scene: {why}")
+
+
+def cropped(ctx, window: tuple[int, int, int, int]):
+    """A copy of ``ctx`` whose renders are only ``window`` = (x, y, width,
+    height) of its film, kept under their own key (path beside a confirming
+    batch, where only some pixels are read: stages/sequential.py); None
+    where its scene is let go."""
+    if ctx.scene is None:
+        return None
+    film = tuple(int(v) for v in ctx.scene.sensors()[0].film().size())
+    sub = copy.copy(ctx)
+    sub.scene = renders.load_resolved(ctx.info.path, ctx.resolved,
+                                      film=scene_files.Film(*film, window))
+    sub.scene_spec = dataclasses.replace(ctx.scene_spec, film=film, crop=window)
+    sub.render_key = f"{ctx.render_key}-crop{'.'.join(map(str, window))}"
+    return sub
 
 
 def release(ctx) -> None:

@@ -51,6 +51,7 @@ from ..checks import evidence
 from ..plan import seeds
 from ..run import stacks
 from ..stats import replication, statistics
+from . import common
 from .common import REFERENCE, kept_file
 
 #: Renders per batch at most (a case's 64 seeds become batches of 16 renders).
@@ -124,14 +125,68 @@ def renderer(ctx, name: str):
 
 
 def control_renderer(ctx, name: str):
-    """``control(look, spp, k)`` for :func:`settle` of estimator ``name``:
-    `path`, the reference's integrator, on the same seeds as a confirming
-    batch (kept under its shape: estimators confirm at their own spp); None
+    """``control(look, spp, k, pixels, around)`` for :func:`settle` of
+    estimator ``name``: (spp, K renders) of `path`, the reference's
+    integrator, on the same seeds as a confirming batch (kept under its
+    shape: estimators confirm at their own spp). Given ``pixels`` (H, W),
+    the only ones read, it renders the :func:`windows` around them, placed
+    in a copy of ``around`` (the confirming batch: what lies outside is not
+    path's, and nothing reads it): sun_sky's cosine sampling at 32² needed
+    path at 16 × 32 768 spp for 2 pixels, 398 s for the whole film. None
     for path itself, for an estimator biased by design (it confirms nothing:
     :func:`settle`'s ``confirm``) or where the context does not render it."""
     if name == REFERENCE or REFERENCE not in ctx.integrators or evidence.by_design(name):
         return None
-    return lambda look, spp, k: batch(ctx, REFERENCE, look, spp, k, f"control-{spp}x{k}")
+
+    def control(look, spp, k, pixels=None, around=None):
+        tag = f"control-{spp}x{k}"
+        parts = None if pixels is None or ctx.scene is None else \
+            windows(pixels, ctx.scene.sensors()[0].film().rfilter().border_size())
+        if not parts:
+            return batch(ctx, REFERENCE, look, spp, k, tag)
+        images = np.array(around[..., :3], copy=True)
+        for x, y, w, h in parts:
+            sub = common.cropped(ctx, (x, y, w, h))
+            images[:, y:y + h, x:x + w] = batch(sub, REFERENCE, look, spp, k,
+                                                f"{tag}-crop{x}.{y}.{w}.{h}")[1]
+        return spp, images
+    return control
+
+
+#: Windows a control renders at most; where the pixels read need more, or
+#: the windows would cover half the film, it renders the whole film.
+WINDOWS = 4
+
+
+def windows(pixels, border: int = 0) -> list[tuple[int, int, int, int]] | None:
+    """(x, y, width, height) windows of a film that hold every pixel of
+    ``pixels`` (H, W) with ``border`` pixels around it (what the film's
+    reconstruction filter reaches: a window's edge pixels must see the
+    samples a whole film gives them), clipped to the film, overlapping ones
+    merged; None where more than :data:`WINDOWS` are needed or they would
+    cover half the film (render the film)."""
+    pixels = np.asarray(pixels, bool)
+    height, width = pixels.shape
+    boxes = [(max(0, x - border), max(0, y - border), min(width, x + border + 1),
+              min(height, y + border + 1)) for y, x in zip(*np.nonzero(pixels))]
+    merged = True
+    while merged:
+        merged = False
+        for i, a in enumerate(boxes):
+            for j in range(i + 1, len(boxes)):
+                b = boxes[j]
+                if a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]:
+                    boxes[i] = (min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]),
+                                max(a[3], b[3]))
+                    del boxes[j]
+                    merged = True
+                    break
+            if merged:
+                break
+    area = sum((x1 - x0) * (y1 - y0) for x0, y0, x1, y1 in boxes)
+    if not boxes or len(boxes) > WINDOWS or 2 * area > height * width:
+        return None
+    return [(x0, y0, x1 - x0, y1 - y0) for x0, y0, x1, y1 in boxes]
 
 
 #: A test stops before its samples per pixel exceed this many times the
@@ -165,9 +220,10 @@ def settle(first: list, reference, read, more, epsilon: float, growth: float,
     ``growth`` the budget as a multiple of the first look's samples,
     ``looks`` the most looks there are seeds for, ``reference_spp`` the
     reference's samples per pixel (the budget stops at
-    :data:`REFERENCE_LEAD` × that), ``control(look, spp, k)`` the
-    reference's integrator on a confirming batch's seeds, rendered only
-    where a rejection came back in it (None: none; see
+    :data:`REFERENCE_LEAD` × that), ``control(look, spp, k, pixels,
+    around)`` the reference's integrator on a confirming batch's seeds
+    (:func:`control_renderer`), rendered only where a rejection came back
+    in it (None: none; see
     replication.replicated_rejection), ``confirm`` False: a fail stands at
     the look that reads it (an estimator biased by design, whose fail is
     its label, not a check's outcome). Returns
@@ -196,7 +252,8 @@ def settle(first: list, reference, read, more, epsilon: float, growth: float,
             fresh = [new]
             replicated, _, again, excused = replication.replicated_rejection(
                 c, d, new[1], reference, alpha, lambda comp, y: read(comp, fresh, -1),
-                (lambda: control(look + 1, spp, renders)[1]) if control else None)
+                (lambda pixels: control(look + 1, spp, renders, pixels, new[1])[1])
+                if control else None)
             confirmation = (f"{'replicated' if replicated else 'not replicated'} in "
                            f"{renders} fresh renders at {spp} spp"
                            + (f" ({excused})" if excused else ""))

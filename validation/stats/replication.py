@@ -55,9 +55,10 @@ def replicated_rejection(first: Comparison, d, y, reference, alpha: float = ALPH
     ``y``? An upward one counts when it comes back; a downward pixel only
     where the fresh renders' tail cannot carry it; the image mean only where
     the fresh renders' own reading counts it (``decide(again, y)``); and,
-    given ``control`` (``control()``: the reference's integrator on the same
-    fresh seeds, called only where a rejection came back, since nothing
-    else reads it), none that comes back there too: it is the reference's
+    given ``control`` (``control(pixels)``: the reference's integrator on
+    the same fresh seeds, at least at ``pixels`` (H, W), or everywhere,
+    image mean included, for None; called only where a rejection came
+    back, since nothing else reads it), none that comes back there too: it is the reference's
     (a rare event it caught, or missed) and the budget's, not the
     estimator's (see :func:`shared_with_control`). Returns (replicated, pixels (H, W) that
     came back, the fresh comparison, what excused a rejection that came
@@ -69,7 +70,8 @@ def replicated_rejection(first: Comparison, d, y, reference, alpha: float = ALPH
     pixels_again, pooled_again, again = replicate(first, y, reference, alpha, pixels, pooled)
     shared = False
     if control is not None and (pixels_again.any() or pooled_again.any()):
-        shared_px, shared_pooled = shared_with_control(first, y, control(), reference, alpha,
+        path = control(None if pooled_again.any() else pixels_again)
+        shared_px, shared_pooled = shared_with_control(first, y, path, reference, alpha,
                                                        pixels_again, pooled_again)
         shared = bool(shared_px.any() or shared_pooled.any())
         pixels_again, pooled_again = pixels_again & ~shared_px, pooled_again & ~shared_pooled
