@@ -99,6 +99,11 @@ def test_path_beside_a_confirmation_renders_windows_around_the_pixels_read(llvm,
     assert t[edges].max() > 6, t[edges]            # measured: 30-100
     files = os.listdir(os.path.join(ctx.run.out_dir, "renders", ctx.id))
     assert sum("-crop" in f for f in files) == 2, files
+    # a window's job travels: a worker loads the same window (jobs.Workshop)
+    job = common.cropped(ctx, (4, 3, 5, 5)).job(ctx.integrators["path"], 16, 7)
+    here = executors.Local().render([job])[0]
+    there = executors.Local().render([pickle.loads(pickle.dumps(job))])[0]
+    assert here.image.shape[:2] == (5, 5) and np.array_equal(here.image, there.image)
 
 
 @pytest.mark.parametrize("scene, defines", [("lone_sphere", {"envmap": "sg"}),
