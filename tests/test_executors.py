@@ -104,6 +104,19 @@ def test_path_beside_a_confirmation_renders_windows_around_the_pixels_read(llvm,
     here = executors.Local().render([job])[0]
     there = executors.Local().render([pickle.loads(pickle.dumps(job))])[0]
     assert here.image.shape[:2] == (5, 5) and np.array_equal(here.image, there.image)
+    # a film with a crop window of its own (a user's scene file as a failure
+    # case): its pixels are that window's, and path renders it whole
+    own = tmp_path / "own.xml"
+    own.write_text(EDGE.replace('<rfilter type="gaussian"/>', '<rfilter type="gaussian"/>'
+                                '<integer name="crop_offset_x" value="2"/>'
+                                '<integer name="crop_width" value="12"/>'))
+    ctx = _context(tmp_path, str(own), {}, res=16)
+    ctx.id = "own"
+    ctx.integrators = {"path": jobs.make("path", ctx.params)}
+    around = np.full((2, 16, 12, 3), -1.0)
+    got = sequential.control_renderer(ctx, "cosine_hemisphere")(1, 16, 2, pixels[:, :12],
+                                                                around)[1]
+    assert got.shape == around.shape and np.all(got >= 0.0)
 
 
 @pytest.mark.parametrize("scene, defines", [("lone_sphere", {"envmap": "sg"}),

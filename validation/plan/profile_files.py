@@ -18,7 +18,8 @@ The format (quick.toml is a worked example; SCHEMA lists every key)::
     res = 8
     ladder = [32, 128, 512, 2048]
     renders = 16
-    display = false                 # none; or {res = 64}: its own, the rest from [display]
+    display = false                 # none; or {res = 64}: res (always) and the
+                                    # keys given, the rest from [display]
     learning = true                 # optional: the learning stage (stages/learning.py)
     [[failures]]                    # one per failure case; for a glossy one:
     sweep = {parameter = "alpha", values = [0.5, 0.1, 0.02]}

@@ -112,7 +112,7 @@ class Workshop:
     (the last :data:`SCENES_KEPT` scenes used)."""
 
     def __init__(self):
-        self.scenes: OrderedDict[str, object] = OrderedDict()
+        self.scenes: OrderedDict[tuple, object] = OrderedDict()   # by SceneSpec.loaded
         self.integrators: dict[tuple, object] = {}
         self.copied: list[str] = []         # scene keys rendered from a copy
 
@@ -130,9 +130,9 @@ class Workshop:
         return renders.render(scene, integrator, job.spp, job.seed)
 
     def scene(self, spec: SceneSpec, files=None):
-        """The scene of ``spec``, loaded once per content key: from its own
-        files when they are here with the same bytes, else from a copy of
-        ``files()`` in this node's cache."""
+        """The scene of ``spec``, loaded once per content key and window:
+        from its own files when they are here with the same bytes, else from
+        a copy of ``files()`` in this node's cache."""
         if spec.loaded not in self.scenes:
             film = spec.film if spec.crop is None else Film(*spec.film, spec.crop)
             self.scenes[spec.loaded] = renders.load_resolved(*self._local(spec, files),

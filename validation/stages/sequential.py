@@ -132,7 +132,9 @@ def control_renderer(ctx, name: str):
     the only ones read, it renders the :func:`windows` around them, placed
     in a copy of ``around`` (the confirming batch: what lies outside is not
     path's, and nothing reads it): sun_sky's cosine sampling at 32² needed
-    path at 16 × 32 768 spp for 2 pixels, 398 s for the whole film. None
+    path at 16 × 32 768 spp for 1 pixel, 398 s for the whole film. A film
+    with a crop window of its own (a user's scene file as a failure case)
+    is rendered whole: its pixels are the window's. None
     for path itself, for an estimator biased by design (it confirms nothing:
     :func:`settle`'s ``confirm``) or where the context does not render it."""
     if name == REFERENCE or REFERENCE not in ctx.integrators or evidence.by_design(name):
@@ -140,8 +142,11 @@ def control_renderer(ctx, name: str):
 
     def control(look, spp, k, pixels=None, around=None):
         tag = f"control-{spp}x{k}"
-        parts = None if pixels is None or ctx.scene is None else \
-            windows(pixels, ctx.scene.sensors()[0].film().rfilter().border_size())
+        film = None if ctx.scene is None else ctx.scene.sensors()[0].film()
+        whole = film is not None and list(film.crop_offset()) == [0, 0] \
+            and list(film.crop_size()) == list(film.size())
+        parts = windows(pixels, film.rfilter().border_size()) \
+            if pixels is not None and whole else None
         if not parts:
             return batch(ctx, REFERENCE, look, spp, k, tag)
         images = np.array(around[..., :3], copy=True)
@@ -156,6 +161,9 @@ def control_renderer(ctx, name: str):
 #: Windows a control renders at most; where the pixels read need more, or
 #: the windows would cover half the film, it renders the whole film.
 WINDOWS = 4
+#: Pixels read beyond which the whole film is rendered without looking for
+#: windows (merging boxes costs the cube of their number).
+WINDOW_PIXELS = 64
 
 
 def windows(pixels, border: int = 0) -> list[tuple[int, int, int, int]] | None:
@@ -164,11 +172,15 @@ def windows(pixels, border: int = 0) -> list[tuple[int, int, int, int]] | None:
     reconstruction filter reaches: a window's edge pixels must see the
     samples a whole film gives them), clipped to the film, overlapping ones
     merged; None where more than :data:`WINDOWS` are needed or they would
-    cover half the film (render the film)."""
+    cover half the film, or more than :data:`WINDOW_PIXELS` pixels are
+    read (render the film)."""
     pixels = np.asarray(pixels, bool)
     height, width = pixels.shape
+    if pixels.sum() > WINDOW_PIXELS:
+        return None
+    rows, cols = (a.tolist() for a in np.nonzero(pixels))
     boxes = [(max(0, x - border), max(0, y - border), min(width, x + border + 1),
-              min(height, y + border + 1)) for y, x in zip(*np.nonzero(pixels))]
+              min(height, y + border + 1)) for y, x in zip(rows, cols)]
     merged = True
     while merged:
         merged = False
