@@ -51,6 +51,11 @@ class SceneSpec:
         """What a loaded scene is kept by: its content and its window."""
         return self.key, self.crop
 
+    @property
+    def load_film(self):
+        """``film`` as renders.load_resolved takes it: with the window, if any."""
+        return self.film if self.crop is None else Film(*self.film, self.crop)
+
 
 @dataclass(frozen=True)
 class Integrator:
@@ -134,9 +139,8 @@ class Workshop:
         from its own files when they are here with the same bytes, else from
         a copy of ``files()`` in this node's cache."""
         if spec.loaded not in self.scenes:
-            film = spec.film if spec.crop is None else Film(*spec.film, spec.crop)
             self.scenes[spec.loaded] = renders.load_resolved(*self._local(spec, files),
-                                                             film=film)
+                                                             film=spec.load_film)
             while len(self.scenes) > SCENES_KEPT:
                 self.scenes.popitem(last=False)
         self.scenes.move_to_end(spec.loaded)

@@ -19,7 +19,7 @@ import os
 
 from mcillum.integrators import registry, scene_checks
 
-from ..plan import scene_files, scenes, seeds
+from ..plan import scenes, seeds
 from ..results import ReferenceSummary
 from ..run import jobs, references, renders, stacks
 
@@ -82,17 +82,15 @@ def choose_estimators(ctx) -> None:
 
 
 def cropped(ctx, window: tuple[int, int, int, int]):
-    """A copy of ``ctx`` whose renders are only ``window`` = (x, y, width,
-    height) of its film, kept under their own key (path beside a confirming
-    batch, where only some pixels are read: stages/sequential.py); None
-    where its scene is let go."""
-    if ctx.scene is None:
-        return None
+    """A copy of ``ctx`` (its scene loaded) whose renders are only
+    ``window`` = (x, y, width, height) of its film, kept under their own key
+    (path beside a confirming batch, where only some pixels are read:
+    stages/sequential.py)."""
     film = tuple(int(v) for v in ctx.scene.sensors()[0].film().size())
     sub = copy.copy(ctx)
-    sub.scene = renders.load_resolved(ctx.info.path, ctx.resolved,
-                                      film=scene_files.Film(*film, window))
     sub.scene_spec = dataclasses.replace(ctx.scene_spec, film=film, crop=window)
+    sub.scene = renders.load_resolved(ctx.info.path, ctx.resolved,
+                                      film=sub.scene_spec.load_film)
     sub.render_key = f"{ctx.render_key}-crop{'.'.join(map(str, window))}"
     return sub
 

@@ -55,23 +55,21 @@ def replicated_rejection(first: Comparison, d, y, reference, alpha: float = ALPH
     ``y``? An upward one counts when it comes back; a downward pixel only
     where the fresh renders' tail cannot carry it; the image mean only where
     the fresh renders' own reading counts it (``decide(again, y)``); and,
-    given ``control`` (``control(pixels)``: the reference's integrator on
-    the same fresh seeds, at least at ``pixels`` (H, W), or everywhere,
-    image mean included, for None; called only where a rejection came
-    back, since nothing else reads it), none that comes back there too: it is the reference's
-    (a rare event it caught, or missed) and the budget's, not the
-    estimator's (see :func:`shared_with_control`). Returns (replicated, pixels (H, W) that
-    came back, the fresh comparison, what excused a rejection that came
-    back: "" (nothing), :data:`TAIL_EXCUSE` or :data:`CONTROL_EXCUSE`)."""
+    given ``control`` (the reference's integrator on the same fresh seeds,
+    rendered by :func:`shared_with_control` only where a rejection came
+    back), none that comes back there too: it is the reference's (a rare
+    event it caught, or missed) and the budget's, not the estimator's.
+    Returns (replicated, pixels (H, W) that came back, the fresh comparison,
+    what excused a rejection that came back: "" (nothing),
+    :data:`TAIL_EXCUSE` or :data:`CONTROL_EXCUSE`)."""
     rejected = first.pixel_p < first.alpha_pixel
     pixels = rejected if d is None or d.pixels is None else d.pixels
     pooled = (first.pooled_p < first.alpha_pooled) if d is None or d.pooled is None \
         else d.pooled
     pixels_again, pooled_again, again = replicate(first, y, reference, alpha, pixels, pooled)
     shared = False
-    if control is not None and (pixels_again.any() or pooled_again.any()):
-        path = control(None if pooled_again.any() else pixels_again)
-        shared_px, shared_pooled = shared_with_control(first, y, path, reference, alpha,
+    if control is not None:
+        shared_px, shared_pooled = shared_with_control(first, y, control, reference, alpha,
                                                        pixels_again, pooled_again)
         shared = bool(shared_px.any() or shared_pooled.any())
         pixels_again, pooled_again = pixels_again & ~shared_px, pooled_again & ~shared_pooled
@@ -100,11 +98,14 @@ CONTROL_EXCUSE = ("the reference's integrator on the same seeds differs from the
 def shared_with_control(first: Comparison, y, control, reference, alpha: float,
                         pixels, pooled) -> tuple[np.ndarray, np.ndarray]:
     """(pixels (H, W), image-mean channels (C,)) among ``pixels`` and
-    ``pooled`` that fresh renders ``y`` reject only as ``control``, the
-    reference's own integrator on the same seeds, does: where the control
-    also rejects in ``first``'s direction, the reference is suspect there,
-    and ``y`` is tested against the control instead; what that does not
-    reject in the same direction is shared. A reference 1.6 % high at one
+    ``pooled`` that fresh renders ``y`` reject only as ``control(at)``, the
+    reference's own integrator on the same seeds, does (rendered only where
+    there is something to test: at least at pixels ``at`` (H, W), or, for
+    None, everywhere and the image mean; path beside a confirming batch
+    cost 398 s for one pixel read). Where the control also rejects in
+    ``first``'s direction, the reference is suspect there, and ``y`` is
+    tested against the control instead; what that does not reject in the
+    same direction is shared. A reference 1.6 % high at one
     pixel, 4.4 of its own standard errors (a user's rough plastic, GGX α
     0.01, under a sunless sky: path's rare glossy hits), makes every
     estimator there look darker however many samples it takes, and path's
@@ -112,10 +113,11 @@ def shared_with_control(first: Comparison, y, control, reference, alpha: float,
     none = (np.zeros_like(np.asarray(pixels, bool)), np.zeros_like(np.asarray(pooled, bool)))
     if not (np.any(pixels) or np.any(pooled)):
         return none
-    suspect_px, suspect_pooled, _ = replicate(first, control, reference, alpha, pixels, pooled)
+    path = control(None if np.any(pooled) else pixels)
+    suspect_px, suspect_pooled, _ = replicate(first, path, reference, alpha, pixels, pooled)
     if not (suspect_px.any() or suspect_pooled.any()):
         return none
-    against = Moments.of(np.asarray(control, np.float64))
+    against = Moments.of(np.asarray(path, np.float64))
     still_px, still_pooled, _ = replicate(first, y, against, alpha, suspect_px, suspect_pooled)
     return suspect_px & ~still_px, suspect_pooled & ~still_pooled
 
