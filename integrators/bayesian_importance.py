@@ -152,6 +152,7 @@ class BayesianImportanceIntegrator(DirectionSetEstimator):
     colour = "#393b79"
     max_direction_pdf = None                   # the light's set finds a sun
     listing_order = 75
+    freezable = True                           # (the validation replays its launches)
     equal_rays_baseline = "emitter_sampling"   # (both sample the light)
 
     def __init__(self, props: mi.Properties):

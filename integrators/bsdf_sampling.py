@@ -71,6 +71,7 @@ class BSDFSamplingIntegrator(IlluminationEstimator):
     reachable = frozenset({"delta_bsdf", "transmission"})
     max_direction_pdf = None                   # as large as the narrowest lobe makes it
     listing_order = 30
+    freezable = True                           # (the validation replays its launches)
 
     def sample_direction(self, scene, sampler, si, bsdf, ctx):
         return sample_bsdf_direction(bsdf, ctx, si, sampler.next_1d(), sampler.next_2d())

@@ -77,6 +77,7 @@ class CosineHemisphereIntegrator(IlluminationEstimator):
     colour = "#1f77b4"
     max_direction_pdf = dr.inv_pi              # p(ω) = cos θ / π ≤ 1/π
     listing_order = 20
+    freezable = True                           # (the validation replays its launches)
     sample_local = staticmethod(sample_cosine_hemisphere)
     pdf_local = staticmethod(cosine_hemisphere_pdf)
     invert_local = staticmethod(invert_cosine_hemisphere)

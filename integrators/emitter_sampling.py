@@ -76,6 +76,7 @@ class EmitterSamplingIntegrator(BSDFSamplingIntegrator):
     reachable = frozenset({"delta_bsdf", "delta_emitter"})
     max_direction_pdf = None                   # emitter samples find any source
     listing_order = 40
+    freezable = True                           # (the validation replays its launches)
     use_nee = True
     sample_emitter = staticmethod(sample_emitter_direction)
     emitter_pdf = staticmethod(emitter_direction_pdf)

@@ -146,6 +146,11 @@ class IlluminationEstimator(mi.SamplingIntegrator):
     depths: tuple[int, ...] | None = None
     #: False for an estimator biased by design (its bias is measured, not tested).
     unbiased = True
+    #: Its render() is the same launches for any seed (no Python work
+    #: between them, nothing made from host memory in sample()): the
+    #: validation records it once and replays it. Read from the class that
+    #: declares it only: a subclass (a twin, a user's variant) may not be.
+    freezable = False
 
     #: One emitter sample per vertex (next-event estimation)?
     use_nee = False

@@ -152,6 +152,7 @@ class FibonacciHemisphereIntegrator(DirectionSetEstimator):
     colour = "#17becf"
     max_direction_pdf = None                   # the glossy set follows the BSDF
     listing_order = 60
+    freezable = True                           # (the validation replays its launches)
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)

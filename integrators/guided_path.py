@@ -213,6 +213,7 @@ class GuidedPathIntegrator(IlluminationEstimator):
     use_mis = True
     records_paths = False                      # (True during training passes)
     learns = True                              # (the learning stage measures it)
+    freezable = False                          # (it learns in Python between passes)
     sample_emitter = staticmethod(sample_emitter_direction)
     emitter_pdf = staticmethod(emitter_direction_pdf)
 

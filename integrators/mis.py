@@ -64,6 +64,7 @@ class MISIntegrator(BSDFSamplingIntegrator):
     reachable = frozenset({"delta_bsdf", "transmission", "delta_emitter"})
     max_direction_pdf = None                   # emitter samples find any source
     listing_order = 50
+    freezable = True                           # (the validation replays its launches)
     use_nee = True
     use_mis = True
     sample_emitter = staticmethod(sample_emitter_direction)

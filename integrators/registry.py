@@ -77,6 +77,10 @@ class Facts:
     #: N directions per shading point (derived from DirectionSetEstimator):
     #: the validation's quadrature stage measures it (equal rays, bias against N).
     point_set: bool = False
+    #: Its render() is the same launches whatever it is called with but spp
+    #: and seed (no Python work between them): the validation may record it
+    #: once and replay it (validation/run/replays.py).
+    freezable: bool = False
 
     @property
     def reaches(self) -> frozenset:
@@ -98,9 +102,10 @@ class Facts:
 #: Mitsuba's `path`: emitter sampling and BSDF sampling, MIS; no media.
 PATH = Facts(REFERENCE, "path tracer (Mitsuba)", "#444444",
              frozenset({"delta_emitter", "delta_bsdf", "transmission"}), None,
-             listing_order=1000, ours=False)
+             listing_order=1000, ours=False, freezable=True)
 
 _facts: dict[str, Facts] = {}
+_classes: dict[str, type] = {}
 
 
 def facts_of(cls) -> Facts:
@@ -111,7 +116,9 @@ def facts_of(cls) -> Facts:
                  depths=getattr(cls, "depths", None), unbiased=getattr(cls, "unbiased", True),
                  diffuse_only=getattr(cls, "diffuse_only", False),
                  equal_rays_baseline=getattr(cls, "equal_rays_baseline", "cosine_hemisphere"),
-                 learns=getattr(cls, "learns", False), point_set=is_point_set_class(cls))
+                 learns=getattr(cls, "learns", False), point_set=is_point_set_class(cls),
+                 # (declared by the class itself: a subclass may do host work)
+                 freezable=bool(vars(cls).get("freezable", False)))
 
 
 def is_point_set_class(cls) -> bool:
@@ -125,12 +132,20 @@ def register(cls) -> type:
     ``plugin_name``, and record its facts. Returns ``cls``."""
     mi.register_integrator(cls.plugin_name, lambda props, cls=cls: cls(props))
     _facts[cls.plugin_name] = facts_of(cls)
+    _classes[cls.plugin_name] = cls
     return cls
 
 
 def unregister(name: str) -> None:
     """Forget the facts of ``name`` (Mitsuba keeps the plugin until exit)."""
     _facts.pop(name, None)
+    _classes.pop(name, None)
+
+
+def plugin_class(name: str) -> type | None:
+    """The class of mcillum's estimator ``name`` as last registered (None
+    for any other plugin)."""
+    return _classes.get(name)
 
 
 def names() -> list[str]:

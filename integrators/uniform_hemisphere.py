@@ -77,6 +77,7 @@ class UniformHemisphereIntegrator(IlluminationEstimator):
     colour = "#d62728"
     max_direction_pdf = dr.inv_two_pi          # p(ω) = 1/(2π) everywhere
     listing_order = 10
+    freezable = True                           # (the validation replays its launches)
     sample_local = staticmethod(sample_uniform_hemisphere)
     pdf_local = staticmethod(uniform_hemisphere_pdf)
     invert_local = staticmethod(invert_uniform_hemisphere)

@@ -66,7 +66,7 @@ class Local(Executor):
         """Render ``jobs`` in order; ``progress(job)`` after each."""
         out = []
         for job in jobs:
-            out.append(self.workshop.run(job))
+            out.append(self.workshop.run(job, timed=timed))
             if progress:
                 progress(job)
         if timed and jobs:

@@ -26,6 +26,7 @@ from mcillum import files as mcillum_files
 from ..plan import scenes
 from ..plan.scene_files import Film
 from . import renders
+from .replays import Replays
 
 
 #: Scenes a workshop keeps loaded. One: every live scene's shapes, BSDFs and
@@ -120,10 +121,14 @@ class Workshop:
         self.scenes: OrderedDict[tuple, object] = OrderedDict()   # by SceneSpec.loaded
         self.integrators: dict[tuple, object] = {}
         self.copied: list[str] = []         # scene keys rendered from a copy
+        self.replays = Replays()
 
-    def run(self, job: Job, files=None) -> renders.Render:
+    def run(self, job: Job, files=None, timed: bool = True) -> renders.Render:
         """Render ``job`` (with its live scene and integrator when it has
-        them); ``files()`` gives :func:`scene_files` when the scene is new here."""
+        them); ``files()`` gives :func:`scene_files` when the scene is new
+        here. An untimed render is replayed where it can be (replays.py)."""
+        if timed:
+            self.replays.clear()
         scene = job.live if job.live is not None else self.scene(job.scene, files)
         integrator = job.integrator.made
         if integrator is None:
@@ -132,7 +137,8 @@ class Workshop:
             if integrator is None:
                 integrator = renders.make_integrator(spec.name, dict(spec.params))
                 self.integrators[(spec.name, spec.params)] = integrator
-        return renders.render(scene, integrator, job.spp, job.seed)
+        launch = None if timed else self.replays.launcher(scene, integrator, job.integrator.name)
+        return renders.render(scene, integrator, job.spp, job.seed, launch)
 
     def scene(self, spec: SceneSpec, files=None):
         """The scene of ``spec``, loaded once per content key and window:

@@ -86,14 +86,15 @@ class RenderWorker:
         """(what decides the images here, this worker's node)."""
         return _versions(self.plugins), self.node
 
-    def render(self, batch, files):
+    def render(self, batch, files, timed: bool = True):
         """(the renders of ``batch`` in order, this worker's node); ``files``
         maps scene keys to ObjectRefs of their files (fetched only for a
-        scene new to this worker: refs inside a dict are not fetched by Ray).
+        scene new to this worker: refs inside a dict are not fetched by Ray);
+        an untimed batch is replayed where it can be (replays.py).
         Raises the innermost exception (Mitsuba wraps a plugin's, and a
         pickled exception loses its ``__cause__``)."""
         try:
-            return [self.workshop.run(job, lambda job=job: ray.get(files[job.scene.key]))
+            return [self.workshop.run(job, lambda job=job: ray.get(files[job.scene.key]), timed)
                     for job in batch], self.node
         except Exception as err:
             cause = errors.root_cause(err).with_traceback(None)
@@ -223,7 +224,8 @@ class RayExecutor(Executor):
                     while queue and load[w] < depth:
                         chunk = queue.pop(0)
                         batch = [jobs[i] for i in chunk]
-                        ref = workers[w].render.remote(batch, self._files_of(batch))
+                        ref = workers[w].render.remote(batch, self._files_of(batch),
+                                                       timed)
                         pending[ref] = (chunk, w)
                         load[w] += 1
                 done, _ = ray.wait(list(pending), num_returns=1)

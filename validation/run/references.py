@@ -91,10 +91,12 @@ class Reference:
 
 def _renders_by():
     """The modules whose code decides an estimator's kept renders: the
-    renderer, the pass splitter and mcillum's own BSDF, which scenes may use
+    renderer, the pass splitter, the replays of recorded launches and
+    mcillum's own BSDF, which scenes may use
     (Mitsuba's code is keyed by its version)."""
     from mcillum.integrators import passes, phong
-    return (renders, passes, phong)
+    from . import replays
+    return (renders, passes, phong, replays)
 
 
 def _filled_by():

@@ -279,24 +279,32 @@ def split_aovs(image: np.ndarray, names, spp: int = 1) -> tuple[np.ndarray, dict
     return radiance, aovs
 
 
-def render(scene: mi.Scene, integrator: mi.Integrator, spp: int, seed: int = 0) -> Render:
-    """Render ``scene`` with ``integrator`` at ``spp`` samples/pixel and ``seed``."""
+def render(scene: mi.Scene, integrator: mi.Integrator, spp: int, seed: int = 0,
+           launch=None) -> Render:
+    """Render ``scene`` with ``integrator`` at ``spp`` samples/pixel and ``seed``;
+    a single pass by ``launch(scene, integrator, spp, seed)`` where given
+    (replays.py), else by ``mi.render``."""
     if spp < 1:
         raise ValueError(f"spp must be >= 1, got {spp}")
     # mcillum's estimators split over-long wavefronts themselves; Mitsuba's own
     # integrators fail when spp does not divide into their pass count.
-    plan = [spp] if registry.is_estimator(integrator) else passes.plan_passes(
-        passes.film_lanes(scene.sensors()[0].film()), spp)
+    lanes = passes.plan_passes(passes.film_lanes(scene.sensors()[0].film()), spp)
+    plan = [spp] if registry.is_estimator(integrator) else lanes
+    if len(lanes) > 1 or launch is None:      # (an estimator's own passes run in Python)
+        launch = _launch
     before = load.snapshot()
     start = time.perf_counter()
-    image = passes.render_in_passes(
-        plan, seed, lambda s, n: mi.render(scene, integrator=integrator, spp=n, seed=s))
+    image = passes.render_in_passes(plan, seed, lambda s, n: launch(scene, integrator, n, s))
     dr.sync_thread()
     seconds = time.perf_counter() - start
     others = load.others_seconds(before, load.snapshot())
     image, aovs = split_aovs(np.array(image, dtype=np.float32), integrator.aov_names(), spp)
     return Render(image, seconds, spp, seed, {"passes": len(plan)} if len(plan) > 1 else {},
                   aovs, others)
+
+
+def _launch(scene, integrator, spp: int, seed: int):
+    return mi.render(scene, integrator=integrator, spp=spp, seed=seed)
 
 
 def provenance(scene_path: str, name: str, integrator, params: dict, defines: dict,

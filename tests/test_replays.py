@@ -1,0 +1,104 @@
+"""Untimed renders replayed (validation/run/replays.py): the image of a
+replayed launch is the traced render's bit for bit, for every estimator
+whose facts allow it and for `path`; what cannot be recorded, or must not
+be, is rendered as written; a timed render never replays."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import mcillum  # noqa: F401
+import mitsuba as mi
+
+from mcillum.integrators import registry
+from mcillum.validation.plan import scenes
+from mcillum.validation.run import jobs, renders, replays
+
+from twins import plugin_class
+
+SEEDS = range(4)
+SPPS = (4, 16)
+
+
+def _freezable() -> list[str]:
+    return [n for n in registry.names() if registry.facts(n).freezable] + ["path"]
+
+
+def _both(scene, integrator, name, book):
+    """Pairs (traced, replayed) of images at every spp and seed."""
+    launcher = book.launcher(scene, integrator, name)
+    return [(renders.render(scene, integrator, spp, seed).image,
+             renders.render(scene, integrator, spp, seed, launcher).image)
+            for spp in SPPS for seed in SEEDS]
+
+
+@pytest.mark.parametrize("scene_name", ["probe_spheres", "cornell_box"])
+def test_a_replay_is_the_traced_render_bit_for_bit(llvm, scene_name):
+    """Glossy BSDFs under a map, and area lights in a closed room: every
+    freezable integrator replays (one recording per spp, the seed opaque)
+    and its images equal the traced ones exactly."""
+    scene = renders.load_scene(scenes.path(scene_name), res=8)
+    book = replays.Replays()
+    for name in _freezable():
+        integrator = renders.make_integrator(name, {"max_depth": 2})
+        for traced, replayed in _both(scene, integrator, name, book):
+            assert np.array_equal(traced, replayed), name
+        assert book._frozen[id(integrator)][1].n_recordings == len(SPPS), name
+    assert not book.refused
+
+
+def test_what_cannot_be_recorded_renders_as_written(llvm):
+    """Mitsuba's orthographic sensor keeps a value Dr.Jit's traversal does
+    not reach: the recording fails, and that integrator renders traced on
+    this scene, the same images."""
+    scene = renders.load_scene(scenes.path("lone_sphere"), res=8)
+    book = replays.Replays()
+    integrator = renders.make_integrator("cosine_hemisphere", {})
+    for traced, replayed in _both(scene, integrator, "cosine_hemisphere", book):
+        assert np.array_equal(traced, replayed)
+    assert book.refused == {"cosine_hemisphere"}
+    assert book.launcher(scene, integrator, "cosine_hemisphere") is None
+
+
+def test_learners_choosers_subclasses_and_users_are_not_replayed(llvm):
+    """guided_path learns between its passes and bayesian_hemisphere reads
+    the scene to choose its settings, in Python a replay would skip; a
+    subclass of an estimator and a user's integrator may do the same."""
+    scene = renders.load_scene(scenes.path("cornell_box"), res=4)
+    book = replays.Replays()
+    for name in ("guided_path", "bayesian_hemisphere"):
+        assert not registry.facts(name).freezable
+        assert book.launcher(scene, renders.make_integrator(name, {"max_depth": 2}),
+                             name) is None
+    subclass = type("Twin", (plugin_class("cosine_hemisphere"),), {})(mi.Properties())
+    assert book.launcher(scene, subclass, "cosine_hemisphere") is None
+    # (a subclass registered as an estimator of its own, as the tests' twins
+    # are: one that builds a table from host memory in sample() would abort
+    # the process while recording)
+    twin = registry.register(type("Twin", (plugin_class("cosine_hemisphere"),),
+                                  {"plugin_name": "replay_twin"}))
+    try:
+        assert not registry.facts("replay_twin").freezable
+        assert book.launcher(scene, twin(mi.Properties()), "replay_twin") is None
+    finally:
+        registry.unregister("replay_twin")
+    assert not registry.facts("my_direct").freezable
+    assert book.launcher(scene, renders.make_integrator("path", {}), "my_direct") is None
+
+
+def test_a_timed_render_is_traced_and_drops_the_recordings(llvm):
+    """The speed stage times what a user's render costs: a timed job is
+    never replayed, and nothing recorded stays alive through it."""
+    scene = renders.load_scene(scenes.path("cornell_box"), res=4)
+    shop = jobs.Workshop()
+    job = jobs.Job(None, jobs.make("cosine_hemisphere", {"max_depth": 2}), 4, 1, live=scene)
+    untimed = shop.run(job, timed=False).image
+    assert shop.replays._frozen
+    timed = shop.run(job, timed=True).image
+    assert not shop.replays._frozen and np.array_equal(untimed, timed)
+    # (another scene drops the first one's recordings too)
+    shop.run(job, timed=False)
+    other = renders.load_scene(scenes.path("cornell_box"), res=4)
+    shop.run(jobs.Job(None, job.integrator, 4, 1, live=other), timed=False)
+    assert shop.replays._scene is other and len(shop.replays._frozen) == 1

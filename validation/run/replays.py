@@ -1,0 +1,87 @@
+"""Untimed renders replayed: Dr.Jit records a render once and replays it.
+
+A render of a few thousand paths costs 3-9 ms, nearly all of it tracing the
+integrator's Python and C++ code into a kernel again; the kernel itself is
+cached. A frozen function (``dr.freeze``) traces once per spp and replays
+the recorded launches with a new seed in about 0.3 ms, and the image is the
+same bit for bit (tests/test_replays.py). The statistics render tens of
+thousands of such images; timed renders are never replayed, so the speed
+stage times what a user's ``mi.render`` costs.
+
+Only integrators whose facts say ``freezable`` are replayed: Mitsuba's
+``path`` and mcillum's estimators that do no work in Python between
+launches. A user's integrator is rendered as written: what its ``render()``
+does in Python would run at the recording only. A scene or integrator that
+cannot be recorded (a member Dr.Jit cannot reach, as Mitsuba's orthographic
+sensor) is rendered as written from then on.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from mcillum.integrators import registry
+
+#: Recordings kept per (scene, integrator): one per spp, the least recently
+#: used dropped first.
+RECORDINGS = 8
+
+
+def launch(scene, integrator, spp: int, seed):
+    """Mitsuba's render of ``scene`` (the one launch a replay records)."""
+    return mi.render(scene, integrator=integrator, spp=spp, seed=seed)
+
+
+def freezable(name: str, integrator) -> bool:
+    """May ``integrator``, made as plugin ``name``, be recorded and
+    replayed: its facts say so, and it is of the class registered under
+    that name (a subclass may do Python work the facts do not know of)?"""
+    if not registry.facts(name).freezable:
+        return False
+    if name == registry.REFERENCE:
+        return integrator.class_name() == "PathIntegrator"
+    return type(integrator) is registry.plugin_class(name)
+
+
+class Replays:
+    """The frozen launches of the scene last rendered untimed, per
+    integrator. Only one scene's: a recording holds its scene alive, and
+    every live scene's instances slow each render (run/jobs.py)."""
+
+    def __init__(self):
+        self.clear()
+
+    def clear(self) -> None:
+        """Drop every recording (before a timed render: nothing held alive)."""
+        self._scene = None
+        self._frozen: dict[int, tuple] = {}         # id(integrator) → (integrator, fn)
+        self.refused: set[str] = set()              # what could not record on this scene
+
+    def launcher(self, scene, integrator, name: str):
+        """``launch(scene, integrator, spp, seed)`` replaying the recording of
+        this scene and integrator, or None where it is rendered as written
+        (scalar variants, an integrator not :func:`freezable`, one that
+        could not be recorded)."""
+        if not dr.is_jit_v(mi.Float) or name in self.refused or not freezable(name, integrator):
+            return None
+        if scene is not self._scene:
+            self.clear()
+            self._scene = scene
+        entry = self._frozen.get(id(integrator))
+        if entry is None or entry[0] is not integrator:
+            entry = (integrator, dr.freeze(launch, limit=RECORDINGS, warn_after=10 ** 6))
+            self._frozen[id(integrator)] = entry
+        frozen = entry[1]
+
+        def replay(scene_, integrator_, spp, seed):
+            try:
+                # (an opaque seed: one recording per spp, not one per seed)
+                return frozen(scene_, integrator_, spp, dr.opaque(mi.UInt32, seed))
+            except RuntimeError as err:
+                if "recording a frozen function" not in str(err):
+                    raise
+                self.refused.add(name)
+                self._frozen.pop(id(integrator), None)
+                return launch(scene_, integrator_, spp, seed)
+        return replay
