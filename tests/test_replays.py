@@ -102,3 +102,48 @@ def test_a_timed_render_is_traced_and_drops_the_recordings(llvm):
     other = renders.load_scene(scenes.path("cornell_box"), res=4)
     shop.run(jobs.Job(None, job.integrator, 4, 1, live=other), timed=False)
     assert shop.replays._scene is other and len(shop.replays._frozen) == 1
+
+
+def test_a_scene_with_a_users_python_plugin_is_traced(llvm):
+    """A user's Python BSDF may make a Dr.Jit array from host memory while it
+    is traced, which aborts the process during a recording: on such a scene
+    nothing is replayed. mcillum's own Phong BSDF is replayed."""
+    base = mi.load_dict({"type": "diffuse"})
+
+    class UserBSDF(mi.BSDF):
+        def __init__(self, props):
+            super().__init__(props)
+            self.m_flags = base.flags()
+            self.m_components = [base.flags()]
+
+        def eval(self, ctx, si, wo, active=True):
+            return base.eval(ctx, si, wo, active)
+
+        def pdf(self, ctx, si, wo, active=True):
+            return base.pdf(ctx, si, wo, active)
+
+        def sample(self, ctx, si, sample1, sample2, active=True):
+            return base.sample(ctx, si, sample1, sample2, active)
+
+        def eval_pdf(self, ctx, si, wo, active=True):
+            return base.eval_pdf(ctx, si, wo, active)
+
+        def to_string(self):
+            return "UserBSDF"
+
+    mi.register_bsdf("replay_user_bsdf", lambda props: UserBSDF(props))
+    book = replays.Replays()
+    path = renders.make_integrator("path", {"max_depth": 2})
+    for bsdf, replayed in (("replay_user_bsdf", False), ("phong", True)):
+        scene = mi.load_dict({
+            "type": "scene", "integrator": {"type": "path"},
+            "sphere": {"type": "sphere", "bsdf": {"type": bsdf}},
+            "light": {"type": "constant"},
+            "sensor": {"type": "perspective", "film": {"type": "hdrfilm", "width": 4,
+                                                       "height": 4}}})
+        assert bool(replays.foreign_plugins(scene)) is not replayed, bsdf
+        launcher = book.launcher(scene, path, "path")
+        assert (launcher is not None) is replayed, bsdf
+        if replayed:
+            for traced, again in _both(scene, path, "path", book):
+                assert np.array_equal(traced, again)

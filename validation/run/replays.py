@@ -11,9 +11,12 @@ stage times what a user's ``mi.render`` costs.
 Only integrators whose facts say ``freezable`` are replayed: Mitsuba's
 ``path`` and mcillum's estimators that do no work in Python between
 launches. A user's integrator is rendered as written: what its ``render()``
-does in Python would run at the recording only. A scene or integrator that
-cannot be recorded (a member Dr.Jit cannot reach, as Mitsuba's orthographic
-sensor) is rendered as written from then on.
+does in Python would run at the recording only. So is any integrator on a
+scene that holds a Python plugin other than mcillum's (a user's BSDF or
+emitter): one that makes a Dr.Jit array from host memory while it is traced
+aborts the process during a recording, where no exception can be caught. A
+scene or integrator that cannot be recorded (a member Dr.Jit cannot reach,
+as Mitsuba's orthographic sensor) is rendered as written from then on.
 """
 
 from __future__ import annotations
@@ -44,6 +47,15 @@ def freezable(name: str, integrator) -> bool:
     return type(integrator) is registry.plugin_class(name)
 
 
+def foreign_plugins(scene) -> list[str]:
+    """The Python plugin classes in ``scene`` that are not mcillum's (its
+    own integrator aside: a replay renders with another)."""
+    found = {type(obj) for obj in mi.traverse(scene).hierarchy
+             if not isinstance(obj, mi.Integrator)}
+    return sorted(f"{c.__module__}.{c.__qualname__}" for c in found
+                  if not c.__module__.startswith(("mitsuba", "mcillum")))
+
+
 class Replays:
     """The frozen launches of the scene last rendered untimed, per
     integrator. Only one scene's: a recording holds its scene alive, and
@@ -54,20 +66,22 @@ class Replays:
 
     def clear(self) -> None:
         """Drop every recording (before a timed render: nothing held alive)."""
-        self._scene = None
+        self._scene, self._foreign = None, []
         self._frozen: dict[int, tuple] = {}         # id(integrator) → (integrator, fn)
         self.refused: set[str] = set()              # what could not record on this scene
 
     def launcher(self, scene, integrator, name: str):
         """``launch(scene, integrator, spp, seed)`` replaying the recording of
         this scene and integrator, or None where it is rendered as written
-        (scalar variants, an integrator not :func:`freezable`, one that
-        could not be recorded)."""
+        (scalar variants, an integrator not :func:`freezable`, a scene
+        with :func:`foreign_plugins`, one that could not be recorded)."""
         if not dr.is_jit_v(mi.Float) or name in self.refused or not freezable(name, integrator):
             return None
         if scene is not self._scene:
             self.clear()
-            self._scene = scene
+            self._scene, self._foreign = scene, foreign_plugins(scene)
+        if self._foreign:
+            return None
         entry = self._frozen.get(id(integrator))
         if entry is None or entry[0] is not integrator:
             entry = (integrator, dr.freeze(launch, limit=RECORDINGS, warn_after=10 ** 6))
