@@ -137,8 +137,8 @@ class Workshop:
             if integrator is None:
                 integrator = renders.make_integrator(spec.name, dict(spec.params))
                 self.integrators[(spec.name, spec.params)] = integrator
-        launch = None if timed else self.replays.launcher(scene, integrator, job.integrator.name)
-        return renders.render(scene, integrator, job.spp, job.seed, launch)
+        replay = None if timed else self.replays.launcher(scene, integrator, job.integrator.name)
+        return renders.render(scene, integrator, job.spp, job.seed, replay)
 
     def scene(self, spec: SceneSpec, files=None):
         """The scene of ``spec``, loaded once per content key and window:

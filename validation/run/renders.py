@@ -280,21 +280,22 @@ def split_aovs(image: np.ndarray, names, spp: int = 1) -> tuple[np.ndarray, dict
 
 
 def render(scene: mi.Scene, integrator: mi.Integrator, spp: int, seed: int = 0,
-           launch=None) -> Render:
+           replay=None) -> Render:
     """Render ``scene`` with ``integrator`` at ``spp`` samples/pixel and ``seed``;
-    a single pass by ``launch(scene, integrator, spp, seed)`` where given
-    (replays.py), else by ``mi.render``."""
+    a single pass by ``replay(scene, integrator, spp, seed)`` where given
+    (replays.py), else by :func:`launch`."""
     if spp < 1:
         raise ValueError(f"spp must be >= 1, got {spp}")
     # mcillum's estimators split over-long wavefronts themselves; Mitsuba's own
     # integrators fail when spp does not divide into their pass count.
     lanes = passes.plan_passes(passes.film_lanes(scene.sensors()[0].film()), spp)
     plan = [spp] if registry.is_estimator(integrator) else lanes
-    if len(lanes) > 1 or launch is None:      # (an estimator's own passes run in Python)
-        launch = _launch
+    # (passes beyond 2³² lanes are split in Python, by an estimator or here:
+    # they are never replayed)
+    one_pass = replay if replay is not None and len(lanes) == 1 else launch
     before = load.snapshot()
     start = time.perf_counter()
-    image = passes.render_in_passes(plan, seed, lambda s, n: launch(scene, integrator, n, s))
+    image = passes.render_in_passes(plan, seed, lambda s, n: one_pass(scene, integrator, n, s))
     dr.sync_thread()
     seconds = time.perf_counter() - start
     others = load.others_seconds(before, load.snapshot())
@@ -303,7 +304,9 @@ def render(scene: mi.Scene, integrator: mi.Integrator, spp: int, seed: int = 0,
                   aovs, others)
 
 
-def _launch(scene, integrator, spp: int, seed: int):
+def launch(scene, integrator, spp: int, seed):
+    """Mitsuba's render of ``scene``: one pass, as :func:`render` and a
+    replay (replays.py) launch it."""
     return mi.render(scene, integrator=integrator, spp=spp, seed=seed)
 
 

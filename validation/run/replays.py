@@ -26,14 +26,11 @@ import mitsuba as mi
 
 from mcillum.integrators import registry
 
+from .renders import launch
+
 #: Recordings kept per (scene, integrator): one per spp, the least recently
 #: used dropped first.
 RECORDINGS = 8
-
-
-def launch(scene, integrator, spp: int, seed):
-    """Mitsuba's render of ``scene`` (the one launch a replay records)."""
-    return mi.render(scene, integrator=integrator, spp=spp, seed=seed)
 
 
 def freezable(name: str, integrator) -> bool:
