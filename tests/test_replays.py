@@ -147,3 +147,55 @@ def test_a_scene_with_a_users_python_plugin_is_traced(llvm):
         if replayed:
             for traced, again in _both(scene, path, "path", book):
                 assert np.array_equal(traced, again)
+
+
+#: A scene left to the garbage collector is freed while a launch is recorded:
+#: the patched ``mi.render`` drops the last reference to a scene held in a
+#: reference cycle and allocates until Python's collector runs by itself.
+GARBAGE_IN_A_RECORDING = """
+import gc, sys
+import mcillum
+import mitsuba as mi
+from mcillum.validation.run import renders, replays
+renders.set_variant("llvm_ad_rgb")
+path = renders.make_integrator("path", {"max_depth": 2})
+old = renders.load_scene(sys.argv[1], res=4)
+renders.render(old, path, 1, 0)                        # (its ray-tracing structure built)
+held = [old]
+held.append(held)
+del old
+original, inside, collections = mi.render, [], []
+gc.callbacks.append(lambda phase, info: collections.extend(inside))
+
+def render(*args, **kwargs):
+    global held
+    held = None                                        # (the cycle is garbage now)
+    gc.set_threshold(1)
+    inside.append(1)
+    junk = [[] for _ in range(1000)]                   # (the collector would run)
+    inside.clear()
+    return original(*args, **kwargs)
+
+mi.render = render
+scene = renders.load_scene(sys.argv[1], res=4)
+book = replays.Replays()
+image = renders.render(scene, path, 4, 1, book.launcher(scene, path, "path")).image
+assert book._frozen, "not recorded"
+print("collections during the replay:", len(collections), image.shape)
+"""
+
+
+def test_the_collector_waits_while_a_launch_is_recorded(llvm, tmp_path):
+    """A scene that Python's garbage collector frees releases its ray-tracing
+    structure through a host function, which a recording cannot hold: the
+    process aborts. A replay holds the collector off, so a scene freed by it
+    (here one left in a cycle, the collector made to run at every
+    allocation inside the recorded launch) waits until the launch is done."""
+    import subprocess
+    import sys
+    script = tmp_path / "garbage.py"
+    script.write_text(GARBAGE_IN_A_RECORDING)
+    run = subprocess.run([sys.executable, str(script), scenes.path("cornell_box")],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert "collections during the replay: 0" in run.stdout, run.stdout

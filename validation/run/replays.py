@@ -21,6 +21,9 @@ as Mitsuba's orthographic sensor) is rendered as written from then on.
 
 from __future__ import annotations
 
+import contextlib
+import gc
+
 import drjit as dr
 import mitsuba as mi
 
@@ -87,8 +90,9 @@ class Replays:
 
         def replay(scene_, integrator_, spp, seed):
             try:
-                # (an opaque seed: one recording per spp, not one per seed)
-                return frozen(scene_, integrator_, spp, dr.opaque(mi.UInt32, seed))
+                with _no_collection():
+                    # (an opaque seed: one recording per spp, not one per seed)
+                    return frozen(scene_, integrator_, spp, dr.opaque(mi.UInt32, seed))
             except RuntimeError as err:
                 if "recording a frozen function" not in str(err):
                     raise
@@ -96,3 +100,19 @@ class Replays:
                 self._frozen.pop(id(integrator), None)
                 return launch(scene_, integrator_, spp, seed)
         return replay
+
+
+@contextlib.contextmanager
+def _no_collection():
+    """Python's cyclic garbage collector held off. A scene it frees
+    releases its ray-tracing structure, and an array made from numpy its
+    buffer, through a host function that a recording cannot hold: collected
+    while a launch was recorded, an earlier stage's scene aborted the process
+    (the quick profile, once in six runs; tests/test_replays.py)."""
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if enabled:
+            gc.enable()
