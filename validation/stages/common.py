@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import gc
 import hashlib
 import json
 import os
@@ -100,8 +101,12 @@ def release(ctx) -> None:
     live scene's shapes, BSDFs and emitters stay in Dr.Jit's instance
     registry, which every virtual call of a kernel dispatches over, and slow
     every later render in this process, and so the timings of the speed
-    stage and of a sweep's points."""
+    stage and of a sweep's points. Collected now: a scene that a reference
+    cycle still reached lived until Python's collector came round, and six
+    such scenes made a traced render of another 3.5× slower (5.5 → 19.6 ms;
+    docs/measurements.md, 2026-12-05)."""
     ctx.scene = None
+    gc.collect()
 
 
 # ----------------------------------- Renders ------------------------------------
