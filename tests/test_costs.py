@@ -132,6 +132,15 @@ def test_budgets_grow_until_the_fixed_cost_is_a_tenth():
     # the smallest budget is at least MIN_BUDGET, whatever the fixed costs
     spp = speed.budget_spp({"path": path}, (4, 8))
     assert costs.seconds_at(path, spp[0]) >= speed.MIN_BUDGET > costs.seconds_at(path, spp[0] - 1)
+    # an estimator that learns (guided_path) gets MIN_LEARNER_SPP at the
+    # largest; the same costs under a name that does not learn, no more
+    learner = costs.fit_cost({4: [0.003 + 3 * B * 4] * 3, 16: [0.003 + 3 * B * 16] * 3})
+    spp = speed.budget_spp({"path": path, "guided_path": learner}, (4, 16))
+    def trained(seconds):
+        return (seconds - learner.fixed_s) / learner.per_spp_s
+    assert trained(costs.seconds_at(path, spp[-1])) >= speed.MIN_LEARNER_SPP - 1e-9
+    assert trained(costs.seconds_at(path, spp[-1] - 4)) < speed.MIN_LEARNER_SPP
+    assert speed.budget_spp({"path": path, "mis": learner}, (4, 16))[-1] < spp[-1]
     hopeless = costs.fit_cost({4: [10.0 + 1e-9 * 4] * 3, 16: [10.0 + 1e-9 * 16] * 3})
     assert speed.budget_spp({"path": path, "other": hopeless}, (4,)) == [4 * speed.MAX_SCALE]
 

@@ -72,10 +72,19 @@ from .budgets import job as _job
 PILOT_SPP = (1, 16)
 MAX_SCALE = 64             # budgets grow at most this much to outweigh the fixed cost
 MIN_SPP = 6                # samples per pixel every estimator gets at the smallest budget
-#: The smallest budget at least (seconds): below about 50 ms the same
-#: render's median time moved by 15-35 % between rounds here, and a quarter
-#: of such budgets were missed (docs/measurements.md, 2026-12-03).
-MIN_BUDGET = 0.06
+#: Samples per pixel an estimator that learns gets at the largest budget at
+#: least: its training passes cost the same at any spp near it, so its
+#: efficiency rises with its spp, and between runs whose budgets differ by a
+#: few % it moved by more than its interval said. guided_path on the Cornell
+#: box at 128²: 0.72 at 24 spp, 0.78 at 26, 0.84-0.87 at 44-45; two
+#: quiet runs and a loaded one read 0.715 and 0.837 (docs/measurements.md,
+#: 2026-12-05).
+MIN_LEARNER_SPP = 40
+#: The smallest budget at least (seconds). With launches of 1-5 ms (they
+#: were 13-33 ms when a 60 ms floor was set) six rounds of four renders at
+#: 30 ms had medians within 1-9 % of each other here (docs/measurements.md,
+#: 2026-12-05, "A 30 ms floor").
+MIN_BUDGET = 0.03
 #: Per-render relMSE varying more than this (coefficient of variation): rare
 #: large errors carry it, and its interval may be too narrow. Synthetic
 #: lognormal σ = 1 and Pareto errors covered 80-90 % at K = 4; the quick
@@ -124,7 +133,8 @@ def budget_spp(models: dict, path_spp) -> list[int]:
     cost is at most 10 % of the largest budget, where efficiency is read,
     every estimator renders at least MIN_SPP samples in the smallest (one
     sample is then at most a sixth of it, and whole samples can come within
-    ±10 % of it), and the smallest is at least MIN_BUDGET. At the smaller
+    ±10 % of it), an estimator that learns at least MIN_LEARNER_SPP in the
+    largest, and the smallest is at least MIN_BUDGET. At the smaller
     budgets the fixed cost is a larger share, and the chart shows what it
     costs there: held to 10 % of the smallest, the quick profile's budgets
     were 2-4× larger (docs/measurements.md, 2026-12-03)."""
@@ -136,7 +146,10 @@ def budget_spp(models: dict, path_spp) -> list[int]:
     slowest = max((max(m.fixed_s, 0.0) + MIN_SPP * m.per_spp_s
                    for n, m in models.items() if n != REFERENCE), default=0.0)
     smallest = (max(slowest, MIN_BUDGET) - path.fixed_s) / per_spp / min(path_spp)
-    scale = min(max(1.0, largest, smallest), MAX_SCALE)
+    learner = max((max(m.fixed_s, 0.0) + MIN_LEARNER_SPP * m.per_spp_s
+                   for n, m in models.items() if registry.facts(n).learns), default=0.0)
+    trained = (learner - path.fixed_s) / per_spp / max(path_spp)
+    scale = min(max(1.0, largest, smallest, trained), MAX_SCALE)
     first = int(np.ceil(scale * min(path_spp)))
     return [int(round(first * s / min(path_spp))) for s in path_spp]
 
@@ -302,7 +315,8 @@ def _cache_file(ctx) -> tuple[str, str]:
     sub, d = ctx.display, ctx.plan.display
     key = hashlib.sha256(json.dumps(
         [sub.render_key, list(sub.integrators), dataclasses.asdict(d), PILOT_SPP,
-         MAX_SCALE, MIN_SPP, MIN_BUDGET, CACHE_VERSION]).encode()).hexdigest()[:24]
+         MAX_SCALE, MIN_SPP, MIN_BUDGET, MIN_LEARNER_SPP, CACHE_VERSION]
+    ).encode()).hexdigest()[:24]
     return layout.kept_renders(ctx.run.out_dir, ctx.id, "speed"), key
 
 
