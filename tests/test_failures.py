@@ -367,3 +367,24 @@ def test_no_correct_estimator_is_called_biased_on_the_hardest_cases(run_case, ca
     verdicts = {n: r.verdict for n, r in rows.items()}
     assert not any(v in FAILING for v in verdicts.values()), verdicts
     assert not [c for c in checks if c.outcome == "fail"]
+
+
+def test_a_refusal_is_kept_without_the_frames_that_hold_its_scene(tmp_path):
+    """cases.probe_refusals keeps each estimator's refusal of the scene in
+    ``ctx.refused``. With its traceback, the refusal's frames held the
+    context and its scene in a cycle after the case was released, and every
+    later render dispatched over that scene's objects until Python's
+    collector came (docs/measurements.md, 2026-12-05): it is kept without."""
+    from mcillum.validation.stages import cases, common
+    from mcillum.validation.stages.context import Context
+    profile = profiles.Profile(name="quick", runs=())
+    plan = profiles.FailureCase(group="unreachable", scene="point_light", res=8, spp=4,
+                                seeds=2, max_depth=2)
+    ctx = Context(Run(profile, "llvm_ad_rgb", str(tmp_path / "cache"), str(tmp_path / "out")),
+                  plan, plan.id, ["cosine_hemisphere", "mis", "path"], dict(plan.defines))
+    common.load(ctx)
+    cases.probe_refusals(ctx)
+    refusal = ctx.refused["cosine_hemisphere"]
+    assert refusal is not None and "delta emitter" in str(refusal)
+    assert refusal.__traceback__ is None
+    assert ctx.refused.get("mis") is None

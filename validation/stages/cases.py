@@ -54,7 +54,9 @@ def _refusal(ctx, name: str) -> UnreachableContentError | None:
     try:
         integrator.check_scene(ctx.scene)
     except UnreachableContentError as err:
-        return err
+        # (kept without its traceback: its frames hold this context and its
+        # scene, which then lived, in a cycle, until Python's collector came)
+        return err.with_traceback(None)
     return None
 
 

@@ -102,9 +102,10 @@ def release(ctx) -> None:
     registry, which every virtual call of a kernel dispatches over, and slow
     every later render in this process, and so the timings of the speed
     stage and of a sweep's points. Collected now: a scene that a reference
-    cycle still reached lived until Python's collector came round, and six
-    such scenes made a traced render of another 3.5× slower (5.5 → 19.6 ms;
-    docs/measurements.md, 2026-12-05)."""
+    cycle still reached lived until Python's collector came round (a
+    refusal kept with its traceback was such a cycle: cases._refusal), and
+    six such scenes made a traced render of another 3.5× slower (5.5 →
+    19.6 ms; docs/measurements.md, 2026-12-05)."""
     ctx.scene = None
     gc.collect()
 
