@@ -140,15 +140,20 @@ def budget_spp(models: dict, path_spp) -> list[int]:
     were 2-4× larger (docs/measurements.md, 2026-12-03)."""
     path = models[REFERENCE]
     per_spp = max(path.per_spp_s, 1e-12)
+
+    def scale_for(seconds: float, spp: int) -> float:
+        # (the factor on `spp` that makes path's time at it ``seconds``)
+        return (seconds - path.fixed_s) / per_spp / spp
+
     worst = max(max(m.fixed_s, 0.0) for m in models.values())
-    largest = (worst / costs.MAX_OVERHEAD - path.fixed_s) / per_spp / max(path_spp)
+    largest = scale_for(worst / costs.MAX_OVERHEAD, max(path_spp))
     # (path's spp defines the budgets: it renders them as they are)
     slowest = max((max(m.fixed_s, 0.0) + MIN_SPP * m.per_spp_s
                    for n, m in models.items() if n != REFERENCE), default=0.0)
-    smallest = (max(slowest, MIN_BUDGET) - path.fixed_s) / per_spp / min(path_spp)
+    smallest = scale_for(max(slowest, MIN_BUDGET), min(path_spp))
     learner = max((max(m.fixed_s, 0.0) + MIN_LEARNER_SPP * m.per_spp_s
                    for n, m in models.items() if registry.facts(n).learns), default=0.0)
-    trained = (learner - path.fixed_s) / per_spp / max(path_spp)
+    trained = scale_for(learner, max(path_spp))
     scale = min(max(1.0, largest, smallest, trained), MAX_SCALE)
     first = int(np.ceil(scale * min(path_spp)))
     return [int(round(first * s / min(path_spp))) for s in path_spp]
