@@ -264,6 +264,34 @@ def test_a_reference_target_resolves_the_checks_not_a_quadrature():
     assert bars == pytest.approx(1e-7, rel=0.4) and bars < floor
 
 
+def test_the_reference_resolves_the_error_bars_where_they_are_calibrated(monkeypatch):
+    """Error bars are calibrated at the rung below the ladder's top
+    (references.bars_rung), and the reference resolves that rung's: its
+    target is BARS_SHARE of the variance there, 4× the top rung's."""
+    import types
+
+    from mcillum.validation.run import references, stacks
+    from mcillum.validation.stages import common
+    assert references.bars_rung([4, 16, 64, 256]) == 64
+    assert references.bars_rung([256, 4, 16]) == 16 and references.bars_rung([32]) == 32
+    rng = np.random.default_rng(3)
+    image = np.full((8, 8, 3), 0.5)
+    ladder = (4, 16, 64, 256)
+
+    def rung(spp, name, sd, bars):
+        x = image + rng.normal(0, sd, (16, 8, 8, 3))
+        return stacks.Stack(name, spp, x, aovs={"posterior_std": x} if bars else {})
+    found = {spp: {"path": rung(spp, "path", 0.2 / np.sqrt(spp), False),
+                   "bayes": rung(spp, "bayes", 0.01 / np.sqrt(spp), True)} for spp in ladder}
+    asked = []
+    monkeypatch.setattr(references, "ensure", lambda ctx, target: asked.append(target))
+    run = types.SimpleNamespace(sequential=types.SimpleNamespace(scene_epsilon=0.02),
+                                profile=types.SimpleNamespace(reference_fraction=0.1))
+    common.build_reference(types.SimpleNamespace(stacks=found, is_case=False, run=run))
+    at = {spp: references.BARS_SHARE * 1e-4 / spp for spp in ladder}
+    assert asked[0] == pytest.approx(at[64], rel=0.3), (asked, at)
+
+
 def test_biased_estimator_fails_with_exit_1(llvm, tiny_profile, tmp_path, capsys):
     biased = twins.wrong_pdf_class("cosine_hemisphere")
     mi.register_integrator("biased_cosine", lambda props, cls=biased: cls(props))

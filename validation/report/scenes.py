@@ -56,11 +56,12 @@ def _quadrature_section(scene: SceneResult, colours: dict) -> str:
         good = c is not None and (c.verdict == "calibrated" or c.verdict.startswith("exact"))
         cal = (f"<span class={'ok' if good else 'warn'}>{html.escape(c.verdict)}</span>: median "
                f"{fmt(c.median, '.2f')} ({fmt(c.q25, '.2f')}–{fmt(c.q75, '.2f')})"
-               ) if c else "—"
+               + (f" at {c.spp} spp" if c.spp else "")) if c else "—"
         rows.append(f"<tr><td>{swatch(q.name, colours)}</td><td>{q.directions}</td>"
                     f"<td>{against}</td><td>{rays}</td><td>{cal}</td></tr>")
         for b in q.bias or []:
             bias_rows.append(f"<tr><td>{swatch(q.name, colours)}</td><td>{b.directions}</td>"
+                             f"<td>{b.renders or q.renders}</td>"
                              f"<td>{100 * b.rms_bias:.2f} % ± {100 * b.rms_bias_se:.2f} %</td>"
                              f"<td>{100 * b.mean_bias:+.2f} %</td></tr>")
     q0 = scene.quadrature[0]
@@ -68,7 +69,7 @@ def _quadrature_section(scene: SceneResult, colours: dict) -> str:
     bias = ("<p>Bias against N (an estimator biased by design): rms over pixels of the "
             "mean of K renders less the reference, corrected for the noise of both, "
             "relative to the reference's rms; and the image mean's relative bias.</p>"
-            "<table><tr><th>estimator</th><th>N</th><th>rms bias ± se</th>"
+            "<table><tr><th>estimator</th><th>N</th><th>renders</th><th>rms bias ± se</th>"
             f"<th>image-mean bias</th></tr>{''.join(bias_rows)}</table>") if bias_rows else ""
     return f"""
 <h3>Quadrature: N directions per shading point</h3>
@@ -80,7 +81,8 @@ ladder renders at {q0.spp} spp and divided by N (N·spp independent samples have
 variance), else rendered at N·spp. The time beside it: medians of timed renders of each. The N directions of a shading point share
 one camera sample: where a pixel's own content varies (a texture, an edge), N·spp camera
 samples of the baseline also antialias it, and the ratio says so. <b>Calibration</b>: per pixel, the measured
-RMSE over the predicted posterior std (the reference's variance added); calibrated when the
+RMSE over the predicted posterior std (the reference's variance added), at the spp it names
+(the rung below the top, whose error bars the reference resolves); calibrated when the
 median lies in [0.5, 2] (above: over-confident); outside [0.1, 3] the check fails.</p>
 <table><tr><th>estimator</th><th>N</th><th>baseline</th><th>relMSE ÷ baseline at equal rays</th>
 <th>posterior std</th></tr>{''.join(rows)}</table>

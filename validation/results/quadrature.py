@@ -33,6 +33,7 @@ class BiasAtN:
     rms_bias: float              # noise-corrected rms over pixels, / rms of the reference
     rms_bias_se: float
     mean_bias: float             # signed, image mean, / the reference's image mean
+    renders: int | None = None   # K renders the bias was read from (minor 17; None: the record's)
 
 
 @dataclass(kw_only=True)
@@ -44,6 +45,7 @@ class Calibration:
     q75: float
     pixels: int
     verdict: str                 # calibrated | over-confident | under-confident | exact …
+    spp: int | None = None       # the ladder rung it was read at (minor 17; None: the record's)
 
 
 @dataclass(kw_only=True)

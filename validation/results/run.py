@@ -48,7 +48,10 @@ VERSION = 1
 #: 16: a convergence record may carry ``looks``, ``renders``,
 #: ``budget_renders``, ``low_spent`` and ``tail_resolved``: the fit continued
 #: on more renders per rung where the ladder could not decide it.
-MINOR_VERSION = 16
+#: 17: a quadrature's ``calibration`` carries ``spp`` (the rung below the
+#: ladder's top, where the reference resolves the error bars at a quarter of
+#: the cost) and each ``bias`` row its ``renders``.
+MINOR_VERSION = 17
 
 
 @dataclass(kw_only=True)

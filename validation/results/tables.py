@@ -134,7 +134,8 @@ def quadrature_summary(q: Quadrature) -> str:
                                              for b in q.bias))
     if q.calibration:
         c = q.calibration
-        parts.append(f"posterior std {c.verdict} (RMSE/std median {c.median:.2f})")
+        parts.append(f"posterior std {c.verdict} (RMSE/std median {c.median:.2f}"
+                     + (f" at {c.spp} spp)" if c.spp else ")"))
     return f"{q.name} (N = {q.directions}, {q.spp} spp): " + "; ".join(parts) + "."
 
 

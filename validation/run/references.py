@@ -196,6 +196,19 @@ RESOLUTION = 0.1
 #: variance in both, and a larger share hides bars that are too narrow
 #: (stages/quadrature.py).
 BARS_SHARE = 0.1
+
+
+def bars_rung(ladder) -> int:
+    """The spp of the ladder rung whose renders' error bars are calibrated
+    (stages/quadrature.py), and so the rung whose variance the reference must
+    resolve to BARS_SHARE: the one below the top. Its renders have about 4×
+    the top's variance, so the reference that resolves them costs a quarter
+    (on the smooth maps, where a quadrature's error is smallest, it had hit
+    the profile's 2²⁰-spp cap); a ladder of one rung calibrates at it."""
+    ladder = sorted(ladder)
+    return ladder[-2] if len(ladder) > 1 else ladder[-1]
+
+
 #: An error below this share of the image is float32's, not the estimator's:
 #: films summing 256 samples per pixel err by ~1e-5 (the full profile's
 #: furnace read as infinitely over-confident at 1e-5 in the calibration,

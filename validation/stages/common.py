@@ -163,12 +163,15 @@ def build_reference(ctx) -> None:
     enough for the error bars of renders that carry them:
     references.target_for), or `path`'s own in a failure case (where the
     other stacks' tails would set no useful target)."""
-    chosen = [s for by_name in ctx.stacks.values() for n, s in by_name.items()
+    chosen = [(spp, s) for spp, by_name in ctx.stacks.items() for n, s in by_name.items()
               if not ctx.is_case or n == REFERENCE]
     epsilon = 0.0 if ctx.is_case else ctx.run.sequential.scene_epsilon
-    target = references.target_for([s.images for s in chosen],
+    # (error bars are calibrated at one rung: the reference resolves that one's)
+    rung = references.bars_rung(list(ctx.stacks)) if ctx.stacks else None
+    target = references.target_for([s.images for _, s in chosen],
                                    ctx.run.profile.reference_fraction, epsilon,
-                                   [s.images for s in chosen if "posterior_std" in s.aovs])
+                                   [s.images for spp, s in chosen
+                                    if spp == rung and "posterior_std" in s.aovs])
     ctx.reference = references.ensure(ctx, target)
 
 

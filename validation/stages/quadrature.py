@@ -18,7 +18,8 @@ rung and resolution.
   ratio are medians of TIMED renders of each, interleaved and timed alone.
 * **Bias against N** (estimators biased by design, facts ``unbiased``
   False): at N = 16, the default and 256, the bias per pixel b = m − r of
-  the mean m of K renders (of the channel mean: the channels share their
+  the mean m of K renders (the default N's from the ladder, the others'
+  :data:`BIAS_RENDERS`) (of the channel mean: the channels share their
   directions), summarised as the noise-corrected rms over pixels
   √(mean(b² − v/K − v_ref)) relative to the rms of the reference, ± its
   standard error. It must shrink from N = 16 to 256 (a check).
@@ -26,7 +27,9 @@ rung and resolution.
   was chosen for the scene at this spp, how, and every candidate's
   held-out error (bayesian_hemisphere's ``auto``: integrators/gp_settings.py).
 * **Calibration of the posterior standard deviation** (estimators that
-  write the ``posterior_std`` AOV): per pixel, the RMSE of the K renders
+  write the ``posterior_std`` AOV), at the rung below the ladder's top
+  (run/references.bars_rung: the reference resolves that rung's error bars
+  at a quarter of the top's cost): per pixel, the RMSE of the K renders
   against the reference over the predicted std (rms over renders, the
   reference's variance added). Median and quartiles over pixels; **calibrated**
   if the median lies within :data:`~mcillum.validation.checks.convergence.CALIBRATED`
@@ -55,6 +58,10 @@ from . import common
 TIMED = 3
 #: The N of the bias-against-N measurement (the default N is added).
 BIAS_DIRECTIONS = (16, 256)
+#: Renders per N other than the default (the plan's K, if fewer): the bias
+#: check reads 2 % against standard errors of 0.01-0.2 % at K = 16 (full
+#: profile), and N = 256 cost 11 s a scene there.
+BIAS_RENDERS = 8
 #: Errors below this share of the reference count as exact (run/references).
 EXACT = references.EXACT
 
@@ -71,8 +78,8 @@ def planned_renders(names, k: int) -> int:
     rendered at N·spp is not)."""
     sets = [n for n in names if is_point_set(n)]
     baselines = {registry.facts(n).equal_rays_baseline for n in sets}
-    return (TIMED * (len(sets) + len(baselines)) +
-            k * sum(0 if registry.facts(n).unbiased else len(BIAS_DIRECTIONS) for n in sets))
+    return (TIMED * (len(sets) + len(baselines)) + min(k, BIAS_RENDERS) *
+            sum(0 if registry.facts(n).unbiased else len(BIAS_DIRECTIONS) for n in sets))
 
 
 def measure(ctx) -> None:
@@ -102,11 +109,13 @@ def measure(ctx) -> None:
             bias = [_bias(own, ref, n)]
             for b, m in enumerate(BIAS_DIRECTIONS):
                 if m != n:
-                    other = _renders(ctx, name, {"directions": m}, spp, k, 2 * len(names) + b)
+                    other = _renders(ctx, name, {"directions": m}, spp, min(k, BIAS_RENDERS),
+                                     2 * len(names) + b)
                     bias.append(_bias(other, ref, m))
             bias.sort(key=lambda row: row.directions)
-        if "posterior_std" in own.aovs:
-            calibration = _calibration(own, ref)
+        rung = references.bars_rung(ctx.plan.ladder)
+        if "posterior_std" in ctx.stacks[rung][name].aovs:
+            calibration = _calibration(ctx.stacks[rung][name], ref, rung)
         ctx.quadrature[name] = Quadrature(name=name, directions=n, spp=spp, renders=k,
                                           equal_rays=rays, bias=bias, calibration=calibration,
                                           settings=_settings(ctx, name, spp))
@@ -216,10 +225,11 @@ def _bias(stack, ref, n) -> BiasAtN:
     # se of √(B) by the delta method, 1/(2√B); at B ≈ 0 the bound √se
     se = se_squared / (2 * rms) if rms > 0 else math.sqrt(se_squared)
     signed = float((b.mean()) / np.mean(r)) if np.mean(r) > 0 else float("nan")
-    return BiasAtN(directions=n, rms_bias=rms / scale, rms_bias_se=se / scale, mean_bias=signed)
+    return BiasAtN(directions=n, rms_bias=rms / scale, rms_bias_se=se / scale, mean_bias=signed,
+                   renders=k)
 
 
-def _calibration(stack, ref) -> Calibration:
+def _calibration(stack, ref, spp: int) -> Calibration:
     x = stack.images[..., :3].astype(np.float64)
     std = stack.aovs["posterior_std"][..., :3].astype(np.float64)
     r = np.asarray(ref.mean, np.float64)[..., :3]
@@ -238,7 +248,7 @@ def _calibration(stack, ref) -> Calibration:
     ratio = ratio[keep]
     if ratio.size == 0:
         return Calibration(median=float("nan"), q25=float("nan"), q75=float("nan"), pixels=0,
-                           verdict="exact (no error and none predicted)")
+                           spp=spp, verdict="exact (no error and none predicted)")
     q25, median, q75 = (float(q) for q in np.quantile(ratio, [0.25, 0.5, 0.75]))
-    return Calibration(median=median, q25=q25, q75=q75, pixels=int(ratio.size),
+    return Calibration(median=median, q25=q25, q75=q75, pixels=int(ratio.size), spp=spp,
                        verdict=convergence.calibration_verdict(median))
