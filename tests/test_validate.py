@@ -284,7 +284,7 @@ def test_the_reference_resolves_the_error_bars_where_they_are_calibrated(monkeyp
     found = {spp: {"path": rung(spp, "path", 0.2 / np.sqrt(spp), False),
                    "bayes": rung(spp, "bayes", 0.01 / np.sqrt(spp), True)} for spp in ladder}
     asked = []
-    monkeypatch.setattr(references, "ensure", lambda ctx, target: asked.append(target))
+    monkeypatch.setattr(references, "ensure", lambda ctx, target, spp: asked.append(target))
     run = types.SimpleNamespace(sequential=types.SimpleNamespace(scene_epsilon=0.02),
                                 profile=types.SimpleNamespace(reference_fraction=0.1))
     common.build_reference(types.SimpleNamespace(stacks=found, is_case=False, run=run))
@@ -379,6 +379,27 @@ def test_small_images_get_larger_reference_passes():
     assert references.pass_spp(64, 8 * 8, 1 << 18) == 1024
     assert references.pass_spp(64, 8 * 8, 1 << 14) == 512          # 32 × 512 = the cap
     assert references.pass_spp(64, 8 * 8, 1 << 10) == 64           # never below the profile's
+
+
+def test_a_reference_of_many_passes_gets_larger_ones(llvm, tmp_path):
+    """A reference expected to need N spp renders passes of the largest
+    power-of-two multiple of the profile's at most N / PASSES_WANTED, within
+    the cap; one in the cache goes on in its own pass size."""
+    wanted = references.PASSES_WANTED
+    assert references.pass_spp(16, 128 * 128, 1 << 20, expected=430_000) == 1024
+    assert 430_000 / 1024 >= wanted / 2
+    assert references.pass_spp(16, 128 * 128, 1 << 20, expected=wanted * 16) == 16
+    assert references.pass_spp(16, 128 * 128, 1 << 14, expected=1e12) == 512  # 32 × 512 = the cap
+    rng = np.random.default_rng(2)
+    renders_ = 0.5 + rng.normal(0, 0.1, (64, 8, 8, 3))        # variance 1e-2 at 16 spp
+    assert references.expected_spp(renders_, 16, 1e-6) == pytest.approx(1.6e5, rel=0.1)
+    ctx = furnace(tmp_path)
+    a = references.ensure(ctx, 1.0)
+    b = references.ensure(ctx, float(a.variance_of_mean.mean()) / 2, expected=1e9)
+    assert b.spp_per_pass == a.spp_per_pass and b.cached_passes == a.passes < b.passes
+    fresh = furnace(tmp_path / "other")
+    c = references.ensure(fresh, 1.0, expected=16 * wanted * a.spp_per_pass)
+    assert c.spp_per_pass == 16 * a.spp_per_pass               # at least `wanted` passes
 
 
 def test_reference_is_extended_not_rerendered(llvm, tmp_path):

@@ -48,6 +48,11 @@ MIN_PASSES = 32
 #: `path` took 2.5-3 ms, most of it the fixed cost of a launch (38-46 µs per
 #: spp against 6-19 µs at 1 024 spp; docs/measurements.md, 2026-12-03).
 PASS_SAMPLES = 1 << 16
+#: A reference expected to need many passes renders passes of at least its
+#: expected spp over this: a traced launch's fixed cost (1.6 ms on the lone
+#: sphere at 32², where a 64-spp pass took 5.3 ms) is paid fewer times, and
+#: 256 passes still estimate each pixel's variance to ±9 %.
+PASSES_WANTED = 256
 FORMAT_VERSION = 1
 
 
@@ -246,23 +251,38 @@ def target_for(stacks, fraction: float = 0.1, epsilon: float = 0.0, bars=()) -> 
     return target
 
 
-def pass_spp(smallest: int, pixels: int, max_spp: int) -> int:
+def pass_spp(smallest: int, pixels: int, max_spp: int, expected: float = 0.0) -> int:
     """The samples per pixel of one pass: ``smallest`` (the profile's
     ``reference_spp_per_pass``), doubled until a pass holds PASS_SAMPLES
     samples over ``pixels`` pixels, so that small images are not rendered
-    in launches that cost mostly their fixed cost; never so large that
-    MIN_PASSES passes exceed ``max_spp`` (the profile's cap)."""
+    in launches that cost mostly their fixed cost, and, for a reference
+    ``expected`` to need that many spp, while PASSES_WANTED passes of the
+    doubled size would not exceed them; never so large that MIN_PASSES
+    passes exceed ``max_spp`` (the profile's cap)."""
     spp = max(1, int(smallest))
-    while spp * max(pixels, 1) < PASS_SAMPLES and 2 * spp * MIN_PASSES <= max_spp:
+    while (spp * max(pixels, 1) < PASS_SAMPLES or 2 * spp * PASSES_WANTED <= expected) and \
+            2 * spp * MIN_PASSES <= max_spp:
         spp *= 2
     return spp
 
 
-def ensure(ctx, target: float) -> Reference:
+def expected_spp(renders, spp: int, target: float) -> float:
+    """The spp a reference would need to reach ``target`` (see
+    :func:`ensure`), judged from ``renders``, K renders of `path` at ``spp``
+    ((K, H, W, C)): the variance of one sample is spp × a render's."""
+    v = metrics.variance_per_render(np.asarray(renders)[..., :3])
+    return float(v * spp / target) if target > 0 and np.isfinite(v) else 0.0
+
+
+def ensure(ctx, target: float, expected: float = 0.0) -> Reference:
     """Load or render the reference of context ``ctx`` (its scene, $-parameters,
     max_depth, variant and cache; the pass size :func:`pass_spp` gives, the
     profile's caps) until
     mean(variance_of_mean) ≤ ``target``.
+
+    ``expected``: the spp it is expected to need (:func:`expected_spp`), which
+    sets the pass size of a reference not yet begun (:func:`pass_spp`); one
+    in the cache goes on in its own passes.
 
     Stops early at the profile's ``reference_max_spp`` total samples per pixel
     or ``reference_max_seconds`` of rendering in this call, and records which
@@ -277,12 +297,12 @@ def ensure(ctx, target: float) -> Reference:
     profile = ctx.run.profile
     max_spp = profile.reference_max_spp
     w, h = ctx.scene.sensors()[0].film().crop_size()
-    spp_per_pass = pass_spp(profile.reference_spp_per_pass, int(w) * int(h), max_spp)
     max_seconds, cache_dir = profile.reference_max_seconds, ctx.run.cache_dir
     key = ctx.scene_key                   # cache_key(), computed when the scene loaded
     ref = load(cache_dir, key)
-    if ref is not None and ref.spp_per_pass != spp_per_pass:
-        ref = None  # a different pass size would mix batch sizes
+    # (passes of one size: a cached reference goes on in its own)
+    spp_per_pass = ref.spp_per_pass if ref is not None else \
+        pass_spp(profile.reference_spp_per_pass, int(w) * int(h), max_spp, expected)
     integrator = jobs.make("path", ctx.params)
     stream = seeds.stream("reference")
     start, rendered = time.perf_counter(), 0

@@ -174,9 +174,10 @@ def display_reference(ctx) -> None:
     """`path` at the display resolution, precise to the profile's fraction of
     the smallest RMSE at the largest budget."""
     sub = ctx.display
-    found = [ctx.budget_stacks[-1][REFERENCE].images]
-    sub.reference = references.ensure(
-        sub, references.target_for(found, ctx.run.profile.display_reference_fraction))
+    own = ctx.budget_stacks[-1][REFERENCE]
+    target = references.target_for([own.images], ctx.run.profile.display_reference_fraction)
+    sub.reference = references.ensure(sub, target,
+                                      references.expected_spp(own.images, own.spp, target))
 
 
 # --------------------------------- Numbers ---------------------------------------
