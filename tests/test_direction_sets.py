@@ -316,6 +316,30 @@ def test_calibration_verdict_follows_the_error(scale, verdict):
     assert c.verdict == verdict, c
 
 
+@pytest.mark.parametrize("se_at_8, renders", [(0.002, [8, 8]), (0.008, [8, 8, 16, 16])])
+def test_the_bias_against_n_renders_the_plans_k_where_eight_cannot_decide(
+        monkeypatch, se_at_8, renders):
+    """The N other than the default are read from BIAS_RENDERS renders; where
+    that leaves bias_shrinks undecided (rms 0.5 % + 2 × 0.8 % against 2 %),
+    they are rendered again with the plan's K."""
+    import types
+
+    from mcillum.validation.results import BiasAtN
+    from mcillum.validation.stages import quadrature
+    asked = []
+    monkeypatch.setattr(quadrature, "_renders", lambda ctx, name, params, spp, k, block:
+                        asked.append(k) or types.SimpleNamespace(k=k))
+    monkeypatch.setattr(quadrature, "_bias", lambda stack, ref, n: BiasAtN(
+        directions=n, rms_bias=0.005, rms_bias_se=se_at_8 if stack.k == 8 else 0.002,
+        mean_bias=0.0, renders=stack.k))
+    ctx = types.SimpleNamespace(integrators={"b": types.SimpleNamespace(
+        made=types.SimpleNamespace(directions=64))})
+    rows = quadrature._bias_against_n(ctx, "b", types.SimpleNamespace(spp=256, k=16), None,
+                                      16, 0)
+    assert asked == renders and [r.directions for r in rows] == [16, 64, 256]
+    assert rows[-1].renders == renders[-1]
+
+
 def test_bias_estimate_is_corrected_for_noise():
     """Pure noise around the reference reads as (nearly) no bias; a 5 % offset
     under the same noise reads as 5 % ± its se."""
