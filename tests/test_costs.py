@@ -273,3 +273,28 @@ def test_an_error_at_the_reference_noise_gives_a_lower_bound():
     assert ci.high == np.inf and 0 < ci.low
     e = costs.efficiency(path, t, share)
     assert e.resolved and e.value == pytest.approx(1 / ((0.2 - 0.01) * 0.05))
+
+
+def test_a_learner_is_noted_with_its_figure_at_every_budget():
+    """speed.learner_notes: an estimator that learns gets its efficiency ÷
+    path at each budget, smallest first (the figure rises as the budget
+    amortises its training); one that does not learn gets none, nor does a
+    stage of one budget."""
+    from mcillum.validation.results import Budget, BudgetRun
+
+    def run(relmse, seconds, spp):
+        v = relmse * (1 + 0.01 * np.arange(6))
+        return BudgetRun(spp=spp, wall_seconds=[seconds] * 6, relmse=float(v.mean()),
+                         relmse_ci=Interval(float(v.min()), float(v.max())),
+                         relmse_per_render=list(v), on_budget=True)
+
+    found = [Budget(seconds=0.03, path_spp=4, reference_relmse=0.0, estimators={
+                 "path": run(0.1, 0.03, 4), "mis": run(0.05, 0.03, 8),
+                 "guided_path": run(0.1 / 0.7, 0.03, 20)}),
+             Budget(seconds=0.12, path_spp=16, reference_relmse=0.0, estimators={
+                 "path": run(0.025, 0.12, 16), "mis": run(0.0125, 0.12, 32),
+                 "guided_path": run(0.025 / 0.9, 0.12, 60)})]
+    notes = speed.learner_notes(found)
+    assert len(notes) == 1 and notes[0].startswith("guided_path"), notes
+    assert notes[0].index("0.7 [") < notes[0].index("0.9 [") and "at 30 ms (20 spp)" in notes[0]
+    assert speed.learner_notes(found[1:]) == []

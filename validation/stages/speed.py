@@ -207,6 +207,7 @@ def measure_speed(ctx) -> None:
                              f"{metrics.RESOLVED:g}× of the "
                              f"reference's own share {share.value:.3g}: the reference "
                              "limits it, and its efficiency is a lower bound")
+    ctx.notes.extend(learner_notes(budgets))
     ranking = costs.ranking({n: (e.value, e.ci) for n, e in eff.items()})
     # the pilot's renders, every repeat: a line through the budgets' renders
     # too gave fixed costs of -8 to -14 ms [intervals below 0], since a sample
@@ -221,6 +222,33 @@ def measure_speed(ctx) -> None:
         mean_flip={n: (f[1] if f is not None else float("nan")) for n, f in flips.items()},
         notes=list(ctx.notes), timed_on=list(ctx.timed_on), others_cores=others,
         cores=cores, loaded=loaded)
+
+
+def learner_notes(found: list[Budget]) -> list[str]:
+    """A note per estimator that learns (registry facts ``learns``) of its
+    efficiency ÷ path at each of the budgets ``found``: its training is paid again in every
+    render, so a larger budget amortises it and the figure rises with the
+    budget (guided_path on the Cornell box: 0.72 at 24 spp, 0.86 at 45,
+    docs/measurements.md, 2026-12-05). Each budget's net of its own
+    reference share; the ranking reads the largest."""
+    notes = []
+    names = [n for n in found[-1].estimators if n != REFERENCE and registry.facts(n).learns]
+    for name in names:
+        parts = []
+        for b in found:
+            run, base = b.estimators.get(name), b.estimators.get(REFERENCE)
+            if run is None or base is None:
+                continue
+            share = costs.Share(b.reference_relmse, b.reference_relmse_se)
+            ratio, ci = costs.ratio_interval(run.relmse_per_render, run.wall_seconds,
+                                             base.relmse_per_render, base.wall_seconds, share)
+            parts.append(f"{ratio:.3g} [{ci.low:.3g}, {ci.high:.3g}] at {b.seconds * 1e3:.0f} ms "
+                         f"({run.spp} spp)")
+        if len(parts) > 1:
+            notes.append(f"{name} learns while it renders, and pays for its training in every "
+                         f"render: efficiency ÷ path {', '.join(parts)}. A larger budget "
+                         "amortises the training; the ranking reads the largest.")
+    return notes
 
 
 def _kind(name: str, run: BudgetRun, share: costs.Share) -> str:
