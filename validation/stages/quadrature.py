@@ -22,7 +22,7 @@ rung and resolution.
   :data:`BIAS_RENDERS`) (of the channel mean: the channels share their
   directions), summarised as the noise-corrected rms over pixels
   √(mean(b² − v/K − v_ref)) relative to the rms of the reference, ± its
-  standard error. It must shrink from N = 16 to 256 (a check).
+  standard error. The check bias_shrinks reads its limit (checks/scene.py).
 * **Settings** (estimators that choose them, ``chosen_settings``): what
   was chosen for the scene at this spp, how, and every candidate's
   held-out error (bayesian_hemisphere's ``auto``: integrators/gp_settings.py).

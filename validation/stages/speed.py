@@ -226,11 +226,11 @@ def measure_speed(ctx) -> None:
 
 def learner_notes(found: list[Budget]) -> list[str]:
     """A note per estimator that learns (registry facts ``learns``) of its
-    efficiency ÷ path at each of the budgets ``found``: its training is paid again in every
-    render, so a larger budget amortises it and the figure rises with the
-    budget (guided_path on the Cornell box: 0.72 at 24 spp, 0.86 at 45,
-    docs/measurements.md, 2026-12-05). Each budget's net of its own
-    reference share; the ranking reads the largest."""
+    efficiency ÷ path at each of the budgets ``found``: its training is paid
+    again in every render, so a larger budget amortises it and the figure
+    rises with the budget (guided_path on the Cornell box: 0.72 at 24 spp,
+    0.86 at 45, docs/measurements.md, 2026-12-05). Each is net of its own
+    budget's reference share; the ranking reads the largest."""
     notes = []
     names = [n for n in found[-1].estimators if n != REFERENCE and registry.facts(n).learns]
     for name in names:
