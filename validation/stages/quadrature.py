@@ -242,8 +242,11 @@ def _bias(stack, ref, n) -> BiasAtN:
                        / per_pixel.size)
     scale = float(np.sqrt(np.mean(r ** 2)))
     rms = math.sqrt(max(squared, 0.0))
-    # se of √(B) by the delta method, 1/(2√B); at B ≈ 0 the bound √se
-    se = se_squared / (2 * rms) if rms > 0 else math.sqrt(se_squared)
+    # se of √(B) by the delta method, se(B)/(2√B), where B is well above its
+    # own se; nearer 0 that grows without bound (0.01 % ± 2.5 % on the quick
+    # furnace, seed set 102), and √(B + se(B)) − √B ≤ √se(B) bounds it
+    se = min(se_squared / (2 * rms), math.sqrt(se_squared)) if rms > 0 else \
+        math.sqrt(se_squared)
     signed = float((b.mean()) / np.mean(r)) if np.mean(r) > 0 else float("nan")
     return BiasAtN(directions=n, rms_bias=rms / scale, rms_bias_se=se / scale, mean_bias=signed,
                    renders=k)
