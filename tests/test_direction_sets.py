@@ -312,7 +312,7 @@ def test_calibration_verdict_follows_the_error(scale, verdict):
     sigma = rng.uniform(0.05, 0.5, size=(8, 8, 3))
     images = ref + sigma * rng.standard_normal((32, 8, 8, 3))
     std = np.broadcast_to(scale * sigma, (32, 8, 8, 3))
-    c = quadrature._calibration(_stack(images, std), _Reference(ref, np.zeros_like(ref)), 16)
+    c = quadrature._calibration(_stack(images, std), _Reference(ref, np.zeros_like(ref)))
     assert c.verdict == verdict, c
 
 
@@ -742,7 +742,7 @@ def _calibration_medians(envmap: str) -> dict[int, float]:
         stack = stacks.Stack("bayesian_hemisphere", spp, np.array([o.image for o in outs]),
                              aovs={"posterior_std": np.array([o.aovs["posterior_std"]
                                                               for o in outs])})
-        medians[spp] = quadrature._calibration(stack, ref, spp).median
+        medians[spp] = quadrature._calibration(stack, ref).median
     return medians
 
 

@@ -172,10 +172,10 @@ def build_reference(ctx) -> None:
                                    ctx.run.profile.reference_fraction, epsilon,
                                    [s.images for spp, s in chosen
                                     if spp == rung and "posterior_std" in s.aovs])
-    # (path's own renders say how many spp that takes: the reference's pass size)
-    top = max(ctx.stacks) if ctx.stacks else None
-    own = ctx.stacks[top].get(REFERENCE) if top is not None else None
-    expected = references.expected_spp(own.images, top, target) if own is not None else 0.0
+    # (path's own renders at the top rung say how many spp that takes: the
+    # reference's pass size)
+    own = ctx.stacks[max(ctx.stacks)].get(REFERENCE) if ctx.stacks else None
+    expected = references.expected_spp(own.images, own.spp, target) if own is not None else 0.0
     ctx.reference = references.ensure(ctx, target, expected)
 
 

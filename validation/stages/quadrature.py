@@ -109,9 +109,9 @@ def measure(ctx) -> None:
         bias, calibration = None, None
         if not registry.facts(name).unbiased:
             bias = _bias_against_n(ctx, name, own, ref, k, 2 * len(names))
-        rung = references.bars_rung(ctx.plan.ladder)
-        if "posterior_std" in ctx.stacks[rung][name].aovs:
-            calibration = _calibration(ctx.stacks[rung][name], ref, rung)
+        bars = ctx.stacks[references.bars_rung(ctx.plan.ladder)][name]
+        if "posterior_std" in bars.aovs:
+            calibration = _calibration(bars, ref)
         ctx.quadrature[name] = Quadrature(name=name, directions=n, spp=spp, renders=k,
                                           equal_rays=rays, bias=bias, calibration=calibration,
                                           settings=_settings(ctx, name, spp))
@@ -245,14 +245,14 @@ def _bias(stack, ref, n) -> BiasAtN:
     # se of √(B) by the delta method, se(B)/(2√B), where B is well above its
     # own se; nearer 0 that grows without bound (0.01 % ± 2.5 % on the quick
     # furnace, seed set 102), and √(B + se(B)) − √B ≤ √se(B) bounds it
-    se = min(se_squared / (2 * rms), math.sqrt(se_squared)) if rms > 0 else \
-        math.sqrt(se_squared)
+    bound = math.sqrt(se_squared)
+    se = min(se_squared / (2 * rms), bound) if rms > 0 else bound
     signed = float((b.mean()) / np.mean(r)) if np.mean(r) > 0 else float("nan")
     return BiasAtN(directions=n, rms_bias=rms / scale, rms_bias_se=se / scale, mean_bias=signed,
                    renders=k)
 
 
-def _calibration(stack, ref, spp: int) -> Calibration:
+def _calibration(stack, ref) -> Calibration:
     x = stack.images[..., :3].astype(np.float64)
     std = stack.aovs["posterior_std"][..., :3].astype(np.float64)
     r = np.asarray(ref.mean, np.float64)[..., :3]
@@ -271,7 +271,7 @@ def _calibration(stack, ref, spp: int) -> Calibration:
     ratio = ratio[keep]
     if ratio.size == 0:
         return Calibration(median=float("nan"), q25=float("nan"), q75=float("nan"), pixels=0,
-                           spp=spp, verdict="exact (no error and none predicted)")
+                           spp=stack.spp, verdict="exact (no error and none predicted)")
     q25, median, q75 = (float(q) for q in np.quantile(ratio, [0.25, 0.5, 0.75]))
-    return Calibration(median=median, q25=q25, q75=q75, pixels=int(ratio.size), spp=spp,
+    return Calibration(median=median, q25=q25, q75=q75, pixels=int(ratio.size), spp=stack.spp,
                        verdict=convergence.calibration_verdict(median))
