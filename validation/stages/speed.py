@@ -395,4 +395,4 @@ def _save_cache(ctx) -> None:
     os.makedirs(os.path.dirname(path), exist_ok=True)
     with files.atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
-            np.savez_compressed(f, **arrays)
+            np.savez(f, **arrays)           # (as run/stacks.py)
