@@ -334,15 +334,17 @@ def test_the_suite_passes_it_and_fails_a_wrong_learned_pdf(llvm, tmp_path):
 # ----------------------------- The learning stage -----------------------------
 
 def test_the_learning_stage_asks_for_the_passes_the_plugin_makes(llvm):
-    """stages/learning.training: the image keeps its spp and the plugin
-    trains in exactly u, 2u, 4u, … (u = spp/4) before it."""
+    """stages/learning.training: the image keeps its spp u and the plugin
+    trains in exactly u, 2u, 4u, … before it; u is a quarter of the
+    ladder's top rung."""
     from mcillum.validation.stages import learning
-    for spp in (1, 16, 64, 2048, 4096):
+    for spp in (1, 4, 16, 512, 1024):
         for j in learning.PASSES:
             total, params = learning.training(spp, j)
             passes = guide().training_passes(total, params["train_fraction"], params["train_passes"])
-            assert passes == [max(spp // 4, 1) * 2 ** i for i in range(j)], (spp, j, passes)
+            assert passes == [spp * 2 ** i for i in range(j)], (spp, j, passes)
             assert total - sum(passes) == spp
+    assert [learning.image_spp(x) for x in ((16, 64), (4096,), (1, 2))] == [16, 1024, 1]
 
 
 def test_train_passes_is_honoured_and_checked(llvm):
@@ -358,8 +360,9 @@ def test_train_passes_is_honoured_and_checked(llvm):
 
 
 def test_the_learning_stage_records_error_against_training(llvm, tmp_path):
-    """A scene run with ``learning = true``: guided_path's relMSE at the top
-    rung's spp after 0–4 training passes, in results.json (schema-valid) and
+    """A scene run with ``learning = true``: guided_path's relMSE at a
+    quarter of the top rung's spp after 0–4 training passes of it and its
+    doublings, in results.json (schema-valid) and
     the report; without the flag, no stage and no record."""
     import json
 
@@ -381,7 +384,7 @@ def test_the_learning_stage_records_error_against_training(llvm, tmp_path):
     assert [x.name for x in learned] == ["guided_path"]
     points = learned[0].points
     assert [p.training_spp for p in points] == [0, 16, 48, 112, 240]
-    assert learned[0].spp == 64 and learned[0].renders == 4
+    assert learned[0].spp == 16 and learned[0].renders == 4
     assert all(np.isfinite(p.relmse) and p.relmse_low <= p.relmse <= p.relmse_high
                for p in points)
     data = json.loads((tmp_path / "on" / "results.json").read_text())

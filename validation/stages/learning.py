@@ -2,11 +2,14 @@
 renders (registry facts ``learns``: guided_path) learn?
 
 On a scene whose plan asks for it (profile key ``learning``), at the
-ladder's top rung ``spp`` and resolution: K renders (the plan's, at most
-:data:`RENDERS`) of ``spp`` image samples
-per pixel after 0, 1, …, :data:`PASSES` training passes of doubling spp
-(u, 2u, 4u, … with u = spp/4), so that the image's own samples stay the
-same and only what was learned before them changes. Per point the relMSE of
+ladder's resolution: K renders (the plan's, at most :data:`RENDERS`) of u
+image samples per pixel after 0, 1, …, :data:`PASSES` training passes of
+doubling spp (u, 2u, 4u, …), u a quarter of the ladder's top rung, so that
+the image's own samples stay the same and only what was learned before them
+changes. (The image had the top rung's 4u samples: the same guides, read by
+a quarter of the samples, give the same ratios to the first point, with
+intervals as wide, since K sets them, at two thirds of the cost:
+docs/measurements.md, 2026-12-05.) Per point the relMSE of
 the renders less the reference's share, with its 95 % interval, and the
 median seconds of a render (training included). A learned pdf that helps
 makes the curve fall from its first point (no training: the estimator's
@@ -46,10 +49,16 @@ def planned_renders(names, k: int, plan) -> int:
     return min(k, RENDERS) * len(PASSES) * len(learners(names)) if plan.learning else 0
 
 
+def image_spp(ladder) -> int:
+    """u, the image's samples per pixel and the first training pass's: a
+    quarter of the ladder's top rung (at least 1)."""
+    return max(max(ladder) // 4, 1)
+
+
 def training(spp: int, passes: int) -> tuple[int, dict]:
     """(total spp, properties) of a render whose image has ``spp`` samples
-    per pixel after ``passes`` training passes of u, 2u, … (u = spp/4)."""
-    train = max(spp // 4, 1) * (2 ** passes - 1)
+    per pixel after ``passes`` training passes of spp, 2·spp, 4·spp, …"""
+    train = spp * (2 ** passes - 1)
     total = spp + train
     # (+½: the plugin takes int(fraction · total) training samples)
     return total, {"train_passes": passes, "train_fraction": (train + 0.5) / total}
@@ -59,7 +68,7 @@ def measure(ctx) -> None:
     """Per learning estimator of the scene: ``ctx.learning[name]``."""
     ctx.learning = {}
     names = learners(ctx.integrators) if ctx.plan.learning else []
-    spp, k = ctx.plan.ladder[-1], min(ctx.plan.renders, RENDERS)
+    spp, k = image_spp(ctx.plan.ladder), min(ctx.plan.renders, RENDERS)
     ref = ctx.reference
     for i, name in enumerate(names):
         points = []
