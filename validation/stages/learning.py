@@ -6,12 +6,12 @@ ladder's resolution: K renders (the plan's, at most :data:`RENDERS`) of u
 image samples per pixel after 0, 1, …, :data:`PASSES` training passes of
 doubling spp (u, 2u, 4u, …), u a quarter of the ladder's top rung, so that
 the image's own samples stay the same and only what was learned before them
-changes. (The image had the top rung's 4u samples: the same guides, read by
-a quarter of the samples, give the same ratios to the first point, with
-intervals as wide, since K sets them, at two thirds of the cost:
-docs/measurements.md, 2026-12-05.) Per point the relMSE of
-the renders less the reference's share, with its 95 % interval, and the
-median seconds of a render (training included). A learned pdf that helps
+changes. (An image of u, not of the top rung's 4u: each point's guides are
+what the same training passes learn, so its ratio to the first point
+estimates the same change in variance per sample, K sets the intervals'
+relative width, and the stage renders a third fewer samples.) Per point the
+relMSE of the renders less the reference's share, with its 95 % interval,
+and the median seconds of a render (training included). A learned pdf that helps
 makes the curve fall from its first point (no training: the estimator's
 fallback, e.g. `mis`) and flatten; one that does not, stays level.
 
