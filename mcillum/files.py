@@ -153,6 +153,15 @@ def write_text(path: str | os.PathLike, text: str) -> None:
             f.write(text)
 
 
+def write_arrays(path: str | os.PathLike, arrays: dict) -> None:
+    """Write ``arrays`` (name → array) to ``path`` atomically as an .npz,
+    uncompressed: zlib shrank float32 renders by a tenth at 34-44 MB/s,
+    seconds of a full validation run for files kept only to resume it."""
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez(f, **arrays)
+
+
 # --------------------------------- EXR files ----------------------------------
 
 def _group(image: np.ndarray, what: str) -> tuple[str, np.ndarray]:

@@ -108,11 +108,7 @@ def _save(path: str, key: str, stacks: dict[str, Stack], compile_seconds: dict) 
         arrays[f"seconds_{i}"] = np.array(u.seconds)
         for group, layers in u.aovs.items():
             arrays[f"aov_{i}_{group}"] = layers
-    # (not compressed: zlib shrank renders by a tenth at a few tens of MB/s,
-    # seconds of a full profile's run for nothing a person sees)
-    with files.atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            np.savez(f, **arrays)
+    files.write_arrays(path, arrays)
 
 
 def kept(ctx, file: str, tag: str, integrators: dict, spp: dict[str, int], k: int,

@@ -393,6 +393,4 @@ def _save_cache(ctx) -> None:
             arrays[f"images_{j}_{i}"] = u.images
             arrays[f"seconds_{j}_{i}"] = np.asarray(u.seconds)
     os.makedirs(os.path.dirname(path), exist_ok=True)
-    with files.atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            np.savez(f, **arrays)           # (as run/stacks.py)
+    files.write_arrays(path, arrays)
