@@ -14,6 +14,8 @@ no whole spp meets T); the try nearest T is measured, and every try is kept
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 from mcillum.integrators import registry
@@ -155,6 +157,14 @@ def unreachable(tries: list[Try], budget: float) -> tuple[int, int] | None:
         if above and max(below) < lo and min(above) > hi:
             return n, n + 1
     return None
+
+
+def load_se(run) -> float:
+    """What the load of other processes during a BudgetRun's measured try
+    adds to its times' log-scale standard error (costs.load_log_se)."""
+    measured = [t for t in run.tries if t.wall_seconds == run.wall_seconds] or run.tries
+    return costs.load_log_se(measured[-1].others_cores if measured else None,
+                             os.cpu_count() or 1)
 
 
 def _carried(model, before: list[Try], before_budget: float, budget: float) -> int:

@@ -66,7 +66,7 @@ from ..run import load, references, timing
 from ..run.stacks import Stack
 from ..stats import costs, metrics
 from . import budgets, common
-from .budgets import LOADED, ON_BUDGET, REFERENCE
+from .budgets import LOADED, ON_BUDGET, REFERENCE, load_se
 from .budgets import job as _job
 
 PILOT_SPP = (1, 16)
@@ -195,7 +195,8 @@ def measure_speed(ctx) -> None:
                               reference_relmse=share.value, reference_relmse_se=share.se))
     top = budgets[-1].estimators
     base = top[REFERENCE]
-    eff = {n: costs.efficiency(run.relmse_per_render, run.wall_seconds, share)
+    # (the times of a loaded machine say less than their scatter shows)
+    eff = {n: costs.efficiency(run.relmse_per_render, run.wall_seconds, share, load_se(run))
            for n, run in top.items()}
     ratios = {}
     for n, run in top.items():
@@ -241,7 +242,8 @@ def learner_notes(found: list[Budget]) -> list[str]:
                 continue
             share = costs.Share(b.reference_relmse, b.reference_relmse_se)
             ratio, ci = costs.ratio_interval(run.relmse_per_render, run.wall_seconds,
-                                             base.relmse_per_render, base.wall_seconds, share)
+                                             base.relmse_per_render, base.wall_seconds, share,
+                                             load_se(run), load_se(base))
             parts.append(f"{ratio:.3g} [{ci.low:.3g}, {ci.high:.3g}] at {b.seconds * 1e3:.0f} ms "
                          f"({run.spp} spp)")
         if len(parts) > 1:

@@ -128,6 +128,24 @@ def _log_se(values) -> float:
     return float(v.std(ddof=1) / (m * np.sqrt(len(v))))
 
 
+#: The log-scale spread the load of other processes adds to a render set's
+#: mean time beyond what the set's own scatter shows, per share of the
+#: machine's cores they used: load comes and goes on longer time scales than
+#: a set of renders. With a busy loop on one of two cores, efficiency ÷ path
+#: moved from a quiet run by up to 16 % here and 20 % on CI, where the
+#: loaded set's interval claimed ±15 % (docs/measurements.md, 2026-12-05).
+LOAD_SPREAD = 0.15
+
+
+def load_log_se(others_cores: float | None, cores: int) -> float:
+    """The log-scale standard error a render set's mean time gains from
+    other processes that used ``others_cores`` of the machine's ``cores`` on
+    average meanwhile (run/load.py); 0 where that is unknown."""
+    if not others_cores or cores <= 0:
+        return 0.0
+    return LOAD_SPREAD * min(others_cores / cores, 1.0)
+
+
 class Share(typing.NamedTuple):
     """What a reference's own noise adds to every relMSE measured against it
     (metrics.reference_relmse), and the standard error of that figure."""
@@ -160,15 +178,16 @@ class Efficiency:
     resolved: bool
 
 
-def efficiency(relmse, seconds, share: Share = Share()) -> Efficiency:
+def efficiency(relmse, seconds, share: Share = Share(), load_se: float = 0.0) -> Efficiency:
     """The efficiency of K renders (per-render relMSE and wall times),
     against the truth rather than against the reference's noise: delta
-    method on logarithms, Student-t with K − 1 degrees of freedom."""
+    method on logarithms, Student-t with K − 1 degrees of freedom; the
+    times' standard error widened by ``load_se`` (:func:`load_log_se`)."""
     v, t = np.asarray(relmse, float), np.asarray(seconds, float)
     q = _t(len(v))
     net = float(v.mean()) - share.value
     se = float(np.hypot(v.std(ddof=1) / np.sqrt(len(v)) if len(v) > 1 else np.inf, share.se))
-    mean_t, t_se = float(t.mean()), _log_se(t)
+    mean_t, t_se = float(t.mean()), float(np.hypot(_log_se(t), load_se))
     if net > q * se and mean_t > 0:
         log_se = float(np.hypot(se / net, t_se))
         value = 1.0 / (net * mean_t)
@@ -181,11 +200,13 @@ def efficiency(relmse, seconds, share: Share = Share()) -> Efficiency:
     return Efficiency(value, float("inf"), Interval(float(low), float("inf")), False)
 
 
-def ratio_interval(relmse, seconds, base_relmse, base_seconds,
-                   share: Share = Share()) -> tuple[float, Interval]:
+def ratio_interval(relmse, seconds, base_relmse, base_seconds, share: Share = Share(),
+                   load_se: float = 0.0, base_load_se: float = 0.0) -> tuple[float, Interval]:
     """Efficiency of one estimator over a base's (``path``) and its interval,
-    both net of the reference's ``share`` (:func:`ratio`)."""
-    return ratio(efficiency(relmse, seconds, share), efficiency(base_relmse, base_seconds, share),
+    both net of the reference's ``share``, each's times widened by its own
+    load (:func:`efficiency`, :func:`ratio`)."""
+    return ratio(efficiency(relmse, seconds, share, load_se),
+                 efficiency(base_relmse, base_seconds, share, base_load_se),
                  min(len(relmse), len(base_relmse)))
 
 
