@@ -431,6 +431,58 @@ def test_a_reference_off_at_a_pixel_is_not_the_estimators_fail():
     assert [d.outcome for d in run(11, control=True, dark=0.9)].count("fail") == 30
 
 
+def test_far_past_the_reference_path_is_asked_before_the_confirming_batch():
+    """A reference 2 % dark at one pixel (a rare event it missed, which its
+    variance does not show), read at 16× its samples per pixel
+    (sequential.PATH_FIRST): a correct estimator reads brighter there, and
+    path in windows on the confirming seeds reads it too, so the
+    estimator's confirming batch (4× the samples so far) is never rendered,
+    and no seed fails. An estimator 10 % bright there, which path is not,
+    still fails in every seed, confirmed on its batch. Read below
+    PATH_FIRST, the fail is confirmed on the estimator's batch first, as
+    before."""
+    mean = np.ones((P, P, 3))
+    ref_mean = mean.copy()
+    ref_mean[0, 0] = 0.98
+    ref = fixed(ref_mean, var=4e-6 * 10_000)
+    first_spp = 1024
+
+    def run(seed, bright=1.0, lead=sequential.PATH_FIRST, trials=30):
+        rng = np.random.default_rng(seed)
+
+        def draw(spp, k, scale=1.0):
+            x = 1.0 + rng.normal(0, SIGMA / np.sqrt(spp), (k, P, P, 1))
+            x[:, 0, 0] *= scale
+            return np.repeat(x, 3, axis=-1)
+        out = []
+        for _ in range(trials):
+            asked = []
+
+            def more(look, spp, k):
+                asked.append(spp * k)
+                return spp, draw(spp, k, bright)
+
+            def path(look, spp, k, *_):
+                return spp, draw(spp, k)
+            settled = sequential.settle(
+                [(first_spp, draw(first_spp, K, bright))], ref, reader(mean), more, EPSILON,
+                16, control=path, reference_spp=first_spp * K // lead)[0]
+            out.append((settled, asked))
+        return out
+
+    start = first_spp * K
+    correct = run(20)
+    outcomes = [s.decision.outcome for s, _ in correct]
+    assert outcomes.count("fail") <= stats.binom.ppf(0.999, 30, ALPHA), outcomes
+    asked_first = [a for s, a in correct if "path in" in s.replication]
+    assert asked_first and all(sequential.CONFIRM * start not in a for a in asked_first)
+    bright = run(21, bright=1.1)
+    assert all(s.decision.outcome == "fail" and s.replicated for s, _ in bright), bright
+    assert all(sequential.CONFIRM * start in a for _, a in bright)
+    below = run(22, lead=sequential.PATH_FIRST // 2, trials=10)
+    assert all(a[0] == sequential.CONFIRM * start for _, a in below), below
+
+
 def test_the_control_is_rendered_only_where_a_rejection_came_back():
     """path beside a confirming batch is read only at what came back in it:
     a first look 10 % dark at one pixel whose confirming batch is not

@@ -134,13 +134,14 @@ def control_renderer(ctx, name: str):
     path's, and nothing reads it): sun_sky's cosine sampling at 32² needed
     path at 16 × 32 768 spp for 1 pixel, 398 s for the whole film. A film
     with a crop window of its own (a user's scene file as a failure case)
-    is rendered whole: its pixels are the window's. None
+    is rendered whole: its pixels are the window's; given ``only_windows``
+    the control then returns None instead. None
     for path itself, for an estimator biased by design (it confirms nothing:
     :func:`settle`'s ``confirm``) or where the context does not render it."""
     if name == REFERENCE or REFERENCE not in ctx.integrators or evidence.by_design(name):
         return None
 
-    def control(look, spp, k, pixels=None, around=None):
+    def control(look, spp, k, pixels=None, around=None, only_windows=False):
         tag = f"control-{spp}x{k}"
         film = None if ctx.scene is None else ctx.scene.sensors()[0].film()
         whole = film is not None and list(film.crop_offset()) == [0, 0] \
@@ -148,7 +149,7 @@ def control_renderer(ctx, name: str):
         parts = windows(pixels, film.rfilter().border_size()) \
             if pixels is not None and whole else None
         if not parts:
-            return batch(ctx, REFERENCE, look, spp, k, tag)
+            return None if only_windows else batch(ctx, REFERENCE, look, spp, k, tag)
         images = np.array(around[..., :3], copy=True)
         for x, y, w, h in parts:
             sub = common.cropped(ctx, (x, y, w, h))
@@ -259,6 +260,22 @@ def settle(first: list, reference, read, more, epsilon: float, growth: float,
             break
         spp, renders = (confirming_batch(d, batches, k) if d.outcome == "fail" else
                         (max(1, math.ceil(total / k)), k))
+        if d.outcome == "fail" and confirm and _path_first(d, c, total, reference_spp, control) \
+                and _reference_at_fault(c, d, batches, reference, alpha,
+                                        control(look + 1, spp, renders, _pixels(d, c),
+                                                np.zeros((renders,) + c.pixel_t.shape + (3,)),
+                                                True)):
+            replicated = False
+            confirmation = (f"not confirmed: path in {renders} fresh renders at {spp} spp "
+                            "differs from the reference as much there (the reference's "
+                            "error, not the estimator's)")
+            if 2 * total > limit:
+                d.outcome = "inconclusive"
+                d.reason += f"; {confirmation}, and the budget is spent"
+                break
+            # (the estimator's confirming batch would read the reference's
+            # error again: the next look is an ordinary one)
+            d.outcome, spp, renders = "inconclusive", max(1, math.ceil(total / k)), k
         new = more(look + 1, spp, renders)
         if d.outcome == "fail":
             fresh = [new]
@@ -284,6 +301,53 @@ def settle(first: list, reference, read, more, epsilon: float, growth: float,
         d.reason += f"; {confirmation}"
     return evidence.Settled(decision=d, looks=look + 1, samples=total, budget=limit,
                             replicated=replicated, replication=confirmation), c
+
+
+#: A fail read at this many times the reference's samples per pixel or
+#: more, on a few pixels and not on the image mean, first asks path on the
+#: confirming batch's seeds, in windows around those pixels, whether the
+#: reference is off there (:func:`_reference_at_fault`): where it is, the
+#: estimator's confirming batch, CONFIRM × the samples so far, would only
+#: read the reference's error again. In sun_sky's failure case the last
+#: look, at 64× the reference's spp, read "brighter at 1 px" in seed sets
+#: 98 and 103, and path beside the confirming batch read it too: 127 s of
+#: confirming renders in seed set 98 (docs/measurements.md, 2026-12-05).
+PATH_FIRST = 16
+
+
+def _pixels(d, c) -> np.ndarray:
+    """The pixels (H, W) fail ``d`` on comparison ``c`` rests on."""
+    return d.pixels if d.pixels is not None else c.pixel_p < c.alpha_pixel
+
+
+def _path_first(d, c, total: int, reference_spp: int | None, control) -> bool:
+    """Whether fail ``d`` (on comparison ``c``, at ``total`` samples per
+    pixel) asks path first (:data:`PATH_FIRST`)."""
+    if control is None or not reference_spp or total < PATH_FIRST * reference_spp:
+        return False
+    if d.pooled is not None and np.any(d.pooled):
+        return False
+    pixels = _pixels(d, c)
+    return 0 < int(pixels.sum()) <= WINDOW_PIXELS
+
+
+def _reference_at_fault(c, d, batches, reference, alpha: float, path) -> bool:
+    """Whether every pixel fail ``d`` (on comparison ``c`` of ``batches``
+    against ``reference``) rests on is the reference's error: ``path``
+    (spp, renders) of the reference's integrator on fresh seeds, in windows
+    around those pixels (None: it could not be rendered so), rejects the
+    reference there in the same direction, and the estimator's renders so
+    far do not reject path's."""
+    if path is None:
+        return False
+    pixels, none = _pixels(d, c), np.zeros(c.pooled_p.shape, bool)
+    suspect, _, _ = replication.replicate(c, path[1], reference, alpha, pixels, none)
+    if not suspect.any() or (suspect != (pixels & (c.pixel_p < c.alpha_pixel))).any():
+        return False
+    against = statistics.Moments.of(np.asarray(path[1], np.float64))
+    still, _, _ = replication.replicate(c, statistics.Moments.pooled(batches), against, alpha,
+                                        suspect, none)
+    return not still.any()
 
 
 def _spent(d, total: int, looks: int, start: int, capped: bool, reference_spp) -> str:
