@@ -114,9 +114,12 @@ def test_path_beside_a_confirmation_renders_windows_around_the_pixels_read(llvm,
     ctx.id = "own"
     ctx.integrators = {"path": jobs.make("path", ctx.params)}
     around = np.full((2, 16, 12, 3), -1.0)
-    got = sequential.control_renderer(ctx, "cosine_hemisphere")(1, 16, 2, pixels[:, :12],
-                                                                around)[1]
+    control = sequential.control_renderer(ctx, "cosine_hemisphere")
+    got = control(1, 16, 2, pixels[:, :12], around)[1]
     assert got.shape == around.shape and np.all(got >= 0.0)
+    # asked first, far past the reference (sequential.PATH_FIRST), path
+    # renders windows or nothing: the whole film is the estimator's batch's cost
+    assert control(1, 16, 2, pixels[:, :12], around, True) is None
 
 
 @pytest.mark.parametrize("scene, defines", [("lone_sphere", {"envmap": "sg"}),

@@ -30,7 +30,10 @@ renders, is confirmed on :data:`CONFIRM_UNSEEN` × the samples at the first
 look's spp (:func:`confirming_batch`): a tail the first renders missed shows
 there as fireflies, which the rules weigh. The confirming batch is rendered
 even past the budget; a fail it does not confirm, with the budget spent, is
-inconclusive. An estimator biased by design is not confirmed: its fail is
+inconclusive. Far past the reference (:data:`PATH_FIRST`) path renders
+the confirming seeds first, in windows around the pixels a fail rests on;
+where it shows the reference off there, the estimator's batch is not
+rendered. An estimator biased by design is not confirmed: its fail is
 the label of a failure case's row, and a scene comparison reads only its
 first look (it has no ``unbiased`` check).
 
@@ -134,8 +137,9 @@ def control_renderer(ctx, name: str):
     path's, and nothing reads it): sun_sky's cosine sampling at 32² needed
     path at 16 × 32 768 spp for 1 pixel, 398 s for the whole film. A film
     with a crop window of its own (a user's scene file as a failure case)
-    is rendered whole: its pixels are the window's; given ``only_windows``
-    the control then returns None instead. None
+    is rendered whole: its pixels are the window's. Given ``only_windows``
+    it returns None wherever it would render the whole film (a crop window
+    of the film's own, or no :func:`windows` for ``pixels``). None
     for path itself, for an estimator biased by design (it confirms nothing:
     :func:`settle`'s ``confirm``) or where the context does not render it."""
     if name == REFERENCE or REFERENCE not in ctx.integrators or evidence.by_design(name):
@@ -236,8 +240,8 @@ def settle(first: list, reference, read, more, epsilon: float, growth: float,
     :data:`REFERENCE_LEAD` × that), ``control(look, spp, k, pixels,
     around)`` the reference's integrator on a confirming batch's seeds
     (:func:`control_renderer`), rendered only where a rejection came back
-    in it (None: none; see
-    replication.replicated_rejection), ``confirm`` False: a fail stands at
+    in it, or before it far past the reference (:data:`PATH_FIRST`) (None:
+    none; see replication.replicated_rejection), ``confirm`` False: a fail stands at
     the look that reads it (an estimator biased by design, whose fail is
     its label, not a check's outcome). Returns
     (:class:`evidence.Settled`, the last look's comparison)."""
@@ -263,8 +267,8 @@ def settle(first: list, reference, read, more, epsilon: float, growth: float,
         if d.outcome == "fail" and confirm and _path_first(d, c, total, reference_spp, control) \
                 and _reference_at_fault(c, d, batches, reference, alpha,
                                         control(look + 1, spp, renders, _pixels(d, c),
-                                                np.zeros((renders,) + c.pixel_t.shape + (3,)),
-                                                True)):
+                                                np.zeros((renders,) + c.pixel_t.shape + (3,),
+                                                         np.float32), True)):
             replicated = False
             confirmation = (f"not confirmed: path in {renders} fresh renders at {spp} spp "
                             "differs from the reference as much there (the reference's "
@@ -307,11 +311,14 @@ def settle(first: list, reference, read, more, epsilon: float, growth: float,
 #: more, on a few pixels and not on the image mean, first asks path on the
 #: confirming batch's seeds, in windows around those pixels, whether the
 #: reference is off there (:func:`_reference_at_fault`): where it is, the
-#: estimator's confirming batch, CONFIRM × the samples so far, would only
-#: read the reference's error again. In sun_sky's failure case the last
-#: look, at 64× the reference's spp, read "brighter at 1 px" in seed sets
-#: 98 and 103, and path beside the confirming batch read it too: 127 s of
-#: confirming renders in seed set 98 (docs/measurements.md, 2026-12-05).
+#: estimator's confirming batch (:func:`confirming_batch`) would only read
+#: the reference's error again. The estimator's renders so far, not that
+#: batch, are then tested against path's: a bias at a pixel where the
+#: reference is off the same way must show in fewer samples to fail. In
+#: sun_sky's failure case the last look, at 64× the reference's spp, read
+#: "brighter at 1 px" in seed sets 98 and 103, and path beside the
+#: confirming batch read it too: 127 s of confirming renders in seed set 98
+#: (docs/measurements.md, 2026-12-05).
 PATH_FIRST = 16
 
 
