@@ -266,9 +266,9 @@ def settle(first: list, reference, read, more, epsilon: float, growth: float,
                         (max(1, math.ceil(total / k)), k))
         if d.outcome == "fail" and confirm and _path_first(d, c, total, reference_spp, control) \
                 and _reference_at_fault(c, d, batches, reference, alpha,
-                                        control(look + 1, spp, renders, _pixels(d, c),
-                                                np.zeros((renders,) + c.pixel_t.shape + (3,),
-                                                         np.float32), True)):
+                                        lambda at: control(look + 1, spp, renders, at,
+                                                           np.zeros((renders,) + at.shape + (3,),
+                                                                    np.float32), True)):
             replicated = False
             confirmation = (f"not confirmed: path in {renders} fresh renders at {spp} spp "
                             "differs from the reference as much there (the reference's "
@@ -340,21 +340,20 @@ def _path_first(d, c, total: int, reference_spp: int | None, control) -> bool:
 
 def _reference_at_fault(c, d, batches, reference, alpha: float, path) -> bool:
     """Whether every pixel fail ``d`` (on comparison ``c`` of ``batches``
-    against ``reference``) rests on is the reference's error: ``path``
-    (spp, renders) of the reference's integrator on fresh seeds, in windows
-    around those pixels (None: it could not be rendered so), rejects the
-    reference there in the same direction, and the estimator's renders so
-    far do not reject path's."""
-    if path is None:
+    against ``reference``) rests on is the reference's error, as
+    replication.shared_with_control reads it for the estimator's renders so
+    far: ``path(pixels)``, the reference's integrator on fresh seeds in
+    windows around ``pixels`` as (spp, renders) (None: it could not be
+    rendered so), rejects the reference there in the same direction, and
+    those renders do not reject path's."""
+    pixels = _pixels(d, c) & (c.pixel_p < c.alpha_pixel)
+    got = path(pixels)
+    if got is None:
         return False
-    pixels, none = _pixels(d, c), np.zeros(c.pooled_p.shape, bool)
-    suspect, _, _ = replication.replicate(c, path[1], reference, alpha, pixels, none)
-    if not suspect.any() or (suspect != (pixels & (c.pixel_p < c.alpha_pixel))).any():
-        return False
-    against = statistics.Moments.of(np.asarray(path[1], np.float64))
-    still, _, _ = replication.replicate(c, statistics.Moments.pooled(batches), against, alpha,
-                                        suspect, none)
-    return not still.any()
+    shared, _ = replication.shared_with_control(
+        c, statistics.Moments.pooled(batches), lambda _: got[1], reference, alpha, pixels,
+        np.zeros(c.pooled_p.shape, bool))
+    return bool(shared.any()) and bool(np.array_equal(shared, pixels))
 
 
 def _spent(d, total: int, looks: int, start: int, capped: bool, reference_spp) -> str:
