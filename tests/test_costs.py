@@ -197,19 +197,6 @@ def test_a_missed_budget_is_corrected_toward_it_in_bounded_steps():
     assert budgets.corrected(coarse, fast, 0.44) == 3                      # and downward
 
 
-def test_a_learner_renders_each_new_spp_once_before_it_is_timed():
-    """budgets.to_warm: every estimator renders untimed at an spp above any
-    it rendered (a larger wavefront); an estimator that learns also at any
-    spp it has not rendered, smaller ones included (guided_path compiles its
-    training passes' kernels there: its first render took 5× the next
-    three); a smooth estimator is not warmed again below its largest."""
-    seen = {"guided_path": {73}, "mis": {73}, "cosine_hemisphere": {40}}
-    todo = {"guided_path": 48, "mis": 48, "cosine_hemisphere": 41}
-    assert budgets.to_warm(todo, seen) == {"guided_path": 48, "cosine_hemisphere": 41}
-    seen["guided_path"].add(48)
-    assert budgets.to_warm({"guided_path": 48, "mis": 73}, seen) == {}
-
-
 def test_a_budget_no_whole_spp_meets_is_named_and_not_chased():
     """budgets.unreachable: tries at n and n + 1 spp whose medians fall
     outside ±10 % on both sides of the budget (a learner's time jumps where

@@ -390,6 +390,9 @@ def test_a_reference_of_many_passes_gets_larger_ones(llvm, tmp_path):
     assert 430_000 / 1024 >= wanted / 2
     assert references.pass_spp(16, 128 * 128, 1 << 20, expected=wanted * 16) == 16
     assert references.pass_spp(16, 128 * 128, 1 << 14, expected=1e12) == 512  # 32 × 512 = the cap
+    # (read only on average, as the speed stage's: fewer, larger passes)
+    assert references.pass_spp(16, 128 * 128, 1 << 20, expected=wanted * 16,
+                               wanted=references.AVERAGE_PASSES_WANTED) == 64
     rng = np.random.default_rng(2)
     renders_ = 0.5 + rng.normal(0, 0.1, (64, 8, 8, 3))        # variance 1e-2 at 16 spp
     assert references.expected_spp(renders_, 16, 1e-6) == pytest.approx(1.6e5, rel=0.1)

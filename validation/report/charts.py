@@ -47,9 +47,40 @@ def _finish(fig, ax, xlabel: str, ylabel: str, title: str) -> str:
     return _svg(fig)
 
 
+_SUPERSCRIPT = str.maketrans("-−0123456789", "⁻⁻⁰¹²³⁴⁵⁶⁷⁸⁹")
+
+
+def _plain_power(label: str) -> str:
+    """A log axis's mathtext label (``$\\mathdefault{2\\times10^{-3}}$``) as
+    plain text (2×10⁻³)."""
+    text = label.strip("$").replace("\\times", "×")
+    text = re.sub(r"\\mathdefault\{(.*)\}", r"\1", text)
+    return re.sub(r"\^\{([^}]*)\}", lambda m: m[1].translate(_SUPERSCRIPT), text)
+
+
+class _PlainLog(matplotlib.ticker.LogFormatterSciNotation):
+    """Matplotlib's log-axis labels, the same ticks labelled, as plain text:
+    mathtext parsing was a fifth of the report's charting time."""
+
+    def __call__(self, x, pos=None):
+        return _plain_power(super().__call__(x, pos))
+
+
+def _plain_log_labels(fig) -> None:
+    for ax in fig.axes:
+        for axis in (ax.xaxis, ax.yaxis):
+            for get, put in ((axis.get_major_formatter, axis.set_major_formatter),
+                             (axis.get_minor_formatter, axis.set_minor_formatter)):
+                f = get()
+                if type(f) is matplotlib.ticker.LogFormatterSciNotation:
+                    put(_PlainLog(f._base, labelOnlyBase=f.labelOnlyBase,
+                                  minor_thresholds=f.minor_thresholds, linthresh=f._linthresh))
+
+
 def _svg(fig) -> str:
     """The figure as compact SVG text for inlining (no XML prolog, no metadata);
     closes the figure."""
+    _plain_log_labels(fig)
     buf = io.StringIO()
     # text as <text> in the page's fonts, not a path per glyph: 40 % fewer bytes
     with matplotlib.rc_context({"svg.fonttype": "none"}):

@@ -126,7 +126,8 @@ class Workshop:
     def run(self, job: Job, files=None, timed: bool = True) -> renders.Render:
         """Render ``job`` (with its live scene and integrator when it has
         them); ``files()`` gives :func:`scene_files` when the scene is new
-        here. An untimed render is replayed where it can be (replays.py)."""
+        here. An untimed render is replayed where it can be (replays.py); a
+        timed one is rendered warm (renders.timed_render)."""
         if timed:
             self.replays.clear()
         scene = job.live if job.live is not None else self.scene(job.scene, files)
@@ -137,7 +138,9 @@ class Workshop:
             if integrator is None:
                 integrator = renders.make_integrator(spec.name, dict(spec.params))
                 self.integrators[(spec.name, spec.params)] = integrator
-        replay = None if timed else self.replays.launcher(scene, integrator, job.integrator.name)
+        if timed:
+            return renders.timed_render(scene, integrator, job.spp, job.seed)
+        replay = self.replays.launcher(scene, integrator, job.integrator.name)
         return renders.render(scene, integrator, job.spp, job.seed, replay)
 
     def scene(self, spec: SceneSpec, files=None):

@@ -53,6 +53,12 @@ PASS_SAMPLES = 1 << 16
 #: sphere at 32², where a 64-spp pass took 5.3 ms) is paid fewer times, and
 #: 256 passes still estimate each pixel's variance to ±9 %.
 PASSES_WANTED = 256
+#: ... and a reference whose pixels' variances are read only on average
+#: (the speed stage's, for the share its noise adds to a relMSE: over
+#: thousands of pixels 64 passes read it to well under 1 %), of this: at
+#: 128² a 16-spp pass of `path` cost a quarter of its time in the launch
+#: (docs/measurements.md, 2026-12-05).
+AVERAGE_PASSES_WANTED = 64
 FORMAT_VERSION = 1
 
 
@@ -251,16 +257,17 @@ def target_for(stacks, fraction: float = 0.1, epsilon: float = 0.0, bars=()) -> 
     return target
 
 
-def pass_spp(smallest: int, pixels: int, max_spp: int, expected: float = 0.0) -> int:
+def pass_spp(smallest: int, pixels: int, max_spp: int, expected: float = 0.0,
+             wanted: int = PASSES_WANTED) -> int:
     """The samples per pixel of one pass: ``smallest`` (the profile's
     ``reference_spp_per_pass``), doubled until a pass holds PASS_SAMPLES
     samples over ``pixels`` pixels, so that small images are not rendered
     in launches that cost mostly their fixed cost, and, for a reference
-    ``expected`` to need that many spp, while PASSES_WANTED passes of the
+    ``expected`` to need that many spp, while ``wanted`` passes of the
     doubled size would not exceed them; never so large that MIN_PASSES
     passes exceed ``max_spp`` (the profile's cap)."""
     spp = max(1, int(smallest))
-    while (spp * max(pixels, 1) < PASS_SAMPLES or 2 * spp * PASSES_WANTED <= expected) and \
+    while (spp * max(pixels, 1) < PASS_SAMPLES or 2 * spp * wanted <= expected) and \
             2 * spp * MIN_PASSES <= max_spp:
         spp *= 2
     return spp
@@ -274,15 +281,17 @@ def expected_spp(renders, spp: int, target: float) -> float:
     return float(v * spp / target) if target > 0 and np.isfinite(v) else 0.0
 
 
-def ensure(ctx, target: float, expected: float = 0.0) -> Reference:
+def ensure(ctx, target: float, expected: float = 0.0,
+           wanted: int = PASSES_WANTED) -> Reference:
     """Load or render the reference of context ``ctx`` (its scene, $-parameters,
     max_depth, variant and cache; the pass size :func:`pass_spp` gives, the
     profile's caps) until
     mean(variance_of_mean) ≤ ``target``.
 
-    ``expected``: the spp it is expected to need (:func:`expected_spp`), which
-    sets the pass size of a reference not yet begun (:func:`pass_spp`); one
-    in the cache goes on in its own passes.
+    ``expected``: the spp it is expected to need (:func:`expected_spp`),
+    which with ``wanted``, the passes that would do, sets the pass size of
+    a reference not yet begun (:func:`pass_spp`); one in the cache goes on
+    in its own passes.
 
     Stops early at the profile's ``reference_max_spp`` total samples per pixel
     or ``reference_max_seconds`` of rendering in this call, and records which
@@ -302,7 +311,7 @@ def ensure(ctx, target: float, expected: float = 0.0) -> Reference:
     ref = load(cache_dir, key)
     # (passes of one size: a cached reference goes on in its own)
     spp_per_pass = ref.spp_per_pass if ref is not None else \
-        pass_spp(profile.reference_spp_per_pass, int(w) * int(h), max_spp, expected)
+        pass_spp(profile.reference_spp_per_pass, int(w) * int(h), max_spp, expected, wanted)
     integrator = jobs.make("path", ctx.params)
     stream = seeds.stream("reference")
     start, rendered = time.perf_counter(), 0

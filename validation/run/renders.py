@@ -280,10 +280,13 @@ def split_aovs(image: np.ndarray, names, spp: int = 1) -> tuple[np.ndarray, dict
 
 
 def render(scene: mi.Scene, integrator: mi.Integrator, spp: int, seed: int = 0,
-           replay=None) -> Render:
+           replay=None, watch_load: bool = False) -> Render:
     """Render ``scene`` with ``integrator`` at ``spp`` samples/pixel and ``seed``;
     a single pass by ``replay(scene, integrator, spp, seed)`` where given
-    (replays.py), else by :func:`launch`."""
+    (replays.py), else by :func:`launch`. With ``watch_load``, record the
+    CPU seconds other processes used meanwhile (``others_seconds``; reading
+    the counters twice a render cost 1 % of a quick profile's untimed
+    renders, which do not need them)."""
     if spp < 1:
         raise ValueError(f"spp must be >= 1, got {spp}")
     # mcillum's estimators split over-long wavefronts themselves; Mitsuba's own
@@ -293,15 +296,46 @@ def render(scene: mi.Scene, integrator: mi.Integrator, spp: int, seed: int = 0,
     # (passes beyond 2³² lanes are split in Python, by an estimator or here:
     # they are never replayed)
     one_pass = replay if replay is not None and len(lanes) == 1 else launch
-    before = load.snapshot()
+    before = load.snapshot() if watch_load else None
     start = time.perf_counter()
     image = passes.render_in_passes(plan, seed, lambda s, n: one_pass(scene, integrator, n, s))
     dr.sync_thread()
     seconds = time.perf_counter() - start
-    others = load.others_seconds(before, load.snapshot())
+    others = load.others_seconds(before, load.snapshot()) if watch_load else None
     image, aovs = split_aovs(np.array(image, dtype=np.float32), integrator.aov_names(), spp)
     return Render(image, seconds, spp, seed, {"passes": len(plan)} if len(plan) > 1 else {},
                   aovs, others)
+
+
+def timed_render(scene: mi.Scene, integrator: mi.Integrator, spp: int,
+                 seed: int = 0) -> Render:
+    """:func:`render`, timed warm: where the render compiled a kernel (or
+    loaded one from Dr.Jit's disk cache), the same render again, whose time
+    is kept (its image is the same: same job, same seed). The time of a
+    render that compiles is the compiler's: Mitsuba splits the sample index
+    by a shift where spp is a power of two and by a division otherwise, so
+    an estimator's first spp of the other kind compiles its kernel (1-7×
+    the render), and guided_path compiles its training passes at each new
+    spp. An untimed render before every timed set paid a whole render where
+    nothing compiled (docs/measurements.md, 2026-12-05). ``meta["compiled"]``
+    counts the renders set aside."""
+    set_aside = 0
+    while True:
+        was = dr.flag(dr.JitFlag.KernelHistory)
+        dr.kernel_history()                      # (empty it: this render's kernels only)
+        dr.set_flag(dr.JitFlag.KernelHistory, True)
+        try:
+            out = render(scene, integrator, spp, seed, watch_load=True)
+            fresh = [k for k in dr.kernel_history() if not k.get("cache_hit", 1)]
+        finally:
+            dr.set_flag(dr.JitFlag.KernelHistory, was)
+        # (once: a kernel that compiles in every render is the render's cost)
+        if not fresh or set_aside:
+            break
+        set_aside += 1
+    if set_aside:
+        out.meta["compiled"] = set_aside
+    return out
 
 
 def launch(scene, integrator, spp: int, seed):

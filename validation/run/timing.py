@@ -3,11 +3,10 @@ scene, as the cost model t = a + b·spp (stats/costs.py).
 
 Machines are shared and noisy, so integrators are compared in one process,
 their renders interleaved (the order rotated every round,
-:func:`stacks.rotation`) so that drift hits all of them alike, and each
-timed only after an untimed render at its largest spp: the first render of
-a kernel compiles it (or loads it from Dr.Jit's cache), and the first at a
-larger wavefront than before allocates memory (docs/measurements.md,
-2026-11: nearly twice the time of the next render).
+:func:`stacks.rotation`) so that drift hits all of them alike, and each spp
+timed only after an untimed render at it: the first render of a kernel
+compiles it (or loads it from Dr.Jit's cache). A timed render that compiled
+anyway is rendered again (renders.timed_render).
 """
 
 from __future__ import annotations

@@ -22,7 +22,7 @@ from mcillum.integrators import registry
 
 from ..plan import seeds
 from ..results import Try
-from ..run import load, stacks, timing
+from ..run import load, stacks
 from ..stats import costs
 
 REFERENCE = registry.REFERENCE
@@ -54,22 +54,14 @@ def render(ctx) -> bool:
         return False
     spps = [{n: path_spp if n == REFERENCE else costs.spp_for(m, budget)
              for n, m in ctx.costs.items()} for budget, path_spp in ctx.budgets]
-    # (untimed: the first render at a larger wavefront allocates memory, timing.py)
-    warmed = {n: max(s[n] for s in spps) for n in spps[0]}
-    timing.warm(sub.run.executor, job(sub), warmed, seeds.stream("speed_timing").seed(0))
-    seen = {n: {s} for n, s in warmed.items()}
+    # (no untimed render first: a timed render that compiled is rendered
+    # again, run/renders.timed_render)
     for j, ((budget, _), spp) in enumerate(zip(ctx.budgets, spps)):
         stacks_j, tries = {}, {n: [] for n in spp}
         todo = dict(spp) if not j else {
             n: _carried(ctx.costs[n], ctx.budget_tries[-1][n], ctx.budgets[j - 1][0], budget)
             for n in spp}
         for attempt in range(1 + LOADED_CORRECTIONS):
-            new = to_warm(todo, seen)
-            if new:
-                timing.warm(sub.run.executor, job(sub), new,
-                            seeds.stream("speed_timing").seed(0))
-                for n, s in new.items():
-                    seen[n].add(s)
             got = stacks.interleaved(
                 sub, {n: sub.integrators[n] for n in todo}, todo, d.renders,
                 seeds.stream("speed", j).take(d.renders),
@@ -90,19 +82,6 @@ def render(ctx) -> bool:
         ctx.budget_tries.append(tries)
     ctx.timed_on = sub.run.executor.timed_on()
     return True
-
-
-def to_warm(todo: dict[str, int], seen: dict[str, set[int]]) -> dict[str, int]:
-    """Those of ``todo`` (name: spp) to render once untimed before their
-    timed try: an spp larger than any the estimator rendered (a new, larger
-    wavefront allocates memory: timing.py), and, for an estimator that
-    learns, any spp it has not rendered. guided_path's first render at a new
-    spp compiles kernels for its training passes: 100-150 ms against
-    15-30 ms for the next three at 34-38 ms budgets, and the corrections,
-    fitted to every render, then stepped away from the budget
-    (docs/measurements.md, 2026-12-05)."""
-    return {n: s for n, s in todo.items()
-            if s > max(seen[n]) or (registry.facts(n).learns and s not in seen[n])}
 
 
 def corrected(model, tries: list[Try], budget: float, learns: bool = False) -> int | None:

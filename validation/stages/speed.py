@@ -176,8 +176,10 @@ def display_reference(ctx) -> None:
     sub = ctx.display
     own = ctx.budget_stacks[-1][REFERENCE]
     target = references.target_for([own.images], ctx.run.profile.display_reference_fraction)
+    # (its pixels' variances are read on average: fewer, larger passes)
     sub.reference = references.ensure(sub, target,
-                                      references.expected_spp(own.images, own.spp, target))
+                                      references.expected_spp(own.images, own.spp, target),
+                                      references.AVERAGE_PASSES_WANTED)
 
 
 # --------------------------------- Numbers ---------------------------------------
