@@ -48,10 +48,10 @@ def test_a_job_travels_without_its_objects_and_renders_the_same(llvm, tmp_path):
 
 
 def test_a_timed_render_that_compiled_is_rendered_again(llvm):
-    """renders.timed_render: a render whose kernel was not in Dr.Jit's
-    memory (compiled, or read from its disk cache) took the compiler's time,
-    so it is rendered again and the second kept, with the same image; a warm
-    render is rendered once. Dr.Jit's kernel history is left as it was."""
+    """renders.timed_render: a render that compiled a kernel took the
+    compiler's time, so it is rendered again and the second kept, with the
+    same image; a warm render is rendered once. Dr.Jit's kernel history is
+    left as it was."""
     import drjit as dr
     import mitsuba as mi
 
@@ -69,10 +69,10 @@ def test_a_timed_render_that_compiled_is_rendered_again(llvm):
                                         "rfilter": {"type": "box"}}}})
     integrator = Constant(mi.Properties())
     first = renders.timed_render(scene, integrator, 3, seed=1)
-    assert first.meta.get("compiled") == 1
+    assert first.meta.get("compile_seconds", 0) > 0        # (the render set aside)
     assert np.array_equal(first.image, renders.render(scene, integrator, 3, seed=1).image)
     warm = renders.timed_render(scene, integrator, 3, seed=2)
-    assert "compiled" not in warm.meta
+    assert "compile_seconds" not in warm.meta
     assert not np.array_equal(first.image, warm.image)     # (the seed decides)
     assert not dr.flag(dr.JitFlag.KernelHistory)
 

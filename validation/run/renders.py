@@ -309,17 +309,18 @@ def render(scene: mi.Scene, integrator: mi.Integrator, spp: int, seed: int = 0,
 
 def timed_render(scene: mi.Scene, integrator: mi.Integrator, spp: int,
                  seed: int = 0) -> Render:
-    """:func:`render`, timed warm: where the render compiled a kernel (or
-    loaded one from Dr.Jit's disk cache), the same render again, whose time
-    is kept (its image is the same: same job, same seed). The time of a
+    """:func:`render`, timed warm: where the render compiled a kernel (one
+    in neither of Dr.Jit's caches: a kernel read from its disk cache costs
+    no more than a warm one), the same render again, whose time is kept
+    (its image is the same: same job, same seed). The time of a
     render that compiles is the compiler's: Mitsuba splits the sample index
     by a shift where spp is a power of two and by a division otherwise, so
     an estimator's first spp of the other kind compiles its kernel (1-7×
     the render), and guided_path compiles its training passes at each new
     spp. An untimed render before every timed set paid a whole render where
-    nothing compiled (docs/measurements.md, 2026-12-05). ``meta["compiled"]``
-    counts the renders set aside."""
-    set_aside = 0
+    nothing compiled (docs/measurements.md, 2026-12-05).
+    ``meta["compile_seconds"]``: the time of the render set aside, if any."""
+    set_aside = None
     while True:
         was = dr.flag(dr.JitFlag.KernelHistory)
         dr.kernel_history()                      # (empty it: this render's kernels only)
@@ -330,11 +331,11 @@ def timed_render(scene: mi.Scene, integrator: mi.Integrator, spp: int,
         finally:
             dr.set_flag(dr.JitFlag.KernelHistory, was)
         # (once: a kernel that compiles in every render is the render's cost)
-        if not fresh or set_aside:
+        if not fresh or set_aside is not None:
             break
-        set_aside += 1
-    if set_aside:
-        out.meta["compiled"] = set_aside
+        set_aside = out.seconds
+    if set_aside is not None:
+        out.meta["compile_seconds"] = set_aside
     return out
 
 

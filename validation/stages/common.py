@@ -115,12 +115,13 @@ def release(ctx) -> None:
 def compile_kernels(ctx) -> None:
     """Each integrator's first render (its kernel compiles or loads from
     Dr.Jit's cache), timed apart; once per context, and only when something
-    is rendered."""
+    is rendered. (A timed render that compiled is rendered again warm,
+    renders.timed_render: the first one's time is the one kept here.)"""
     if ctx.compile_seconds:
         return
     seed = seeds.stream("compile").seed()
     batch = [ctx.job(integ, 1, seed) for integ in ctx.integrators.values()]
-    ctx.compile_seconds = {n: out.seconds for n, out in
+    ctx.compile_seconds = {n: out.meta.get("compile_seconds", out.seconds) for n, out in
                            zip(ctx.integrators, ctx.render(batch, None, timed=True))}
 
 
