@@ -111,38 +111,43 @@ def test_ranking_ties_only_overlapping_intervals():
 
 
 def test_budgets_grow_until_the_fixed_cost_is_a_tenth():
-    """speed.budget_spp: `path`'s spp values grow by one factor until every
+    """budgets.budget_spp: `path`'s spp values grow by one factor until every
     estimator's fixed cost is at most 10 % of the largest budget (where
     efficiency is read), keeping their ratios, up to MAX_SCALE."""
     path = costs.fit_cost({4: [A + B * 4] * 3, 16: [A + B * 16] * 3})
     slow_start = costs.fit_cost({4: [0.04 + B * 4] * 3, 16: [0.04 + B * 16] * 3})
-    spp = speed.budget_spp({"path": path, "other": slow_start}, (4, 8, 16))
+    spp = budgets.budget_spp({"path": path, "other": slow_start}, (4, 8, 16))
     assert spp[1] == 2 * spp[0] and spp[2] == 4 * spp[0]
     assert costs.seconds_at(path, spp[2]) >= 10 * 0.04 > costs.seconds_at(path, spp[2] - 4)
-    # an estimator whose sample costs 20× path's: at least MIN_SPP of them fit
-    # in the smallest budget
-    slow = costs.fit_cost({4: [0.003 + 20 * B * 4] * 3, 16: [0.003 + 20 * B * 16] * 3})
-    spp = speed.budget_spp({"path": path, "other": slow}, (4, 16))
+    # an estimator whose sample costs 80× path's: at least MIN_SPP of them fit
+    # in the largest budget, where efficiency is read; the smaller one, a
+    # quarter of it, has no room for them and does not render it (fits)
+    slow = costs.fit_cost({4: [0.003 + 80 * B * 4] * 3, 16: [0.003 + 80 * B * 16] * 3})
+    spp = budgets.budget_spp({"path": path, "other": slow}, (4, 16))
     def samples(seconds):
         return (seconds - slow.fixed_s) / slow.per_spp_s
-    assert samples(costs.seconds_at(path, spp[0])) >= speed.MIN_SPP - 1e-9
-    assert samples(costs.seconds_at(path, spp[0] - 1)) < speed.MIN_SPP
+    assert samples(costs.seconds_at(path, spp[-1])) >= budgets.MIN_SPP - 1e-9
+    assert samples(costs.seconds_at(path, spp[-1] - 4)) < budgets.MIN_SPP
+    assert budgets.fits(slow, costs.seconds_at(path, spp[-1]))
+    assert not budgets.fits(slow, costs.seconds_at(path, spp[0]))
+    assert budgets.fits(path, costs.seconds_at(path, spp[0]))
     cheap = costs.fit_cost({4: [5e-4 + 8 * B * 4] * 3, 16: [5e-4 + 8 * B * 16] * 3})
-    assert speed.budget_spp({"path": cheap}, (4, 8)) == [4, 8]  # already ≤ 10 %: as given
+    assert budgets.budget_spp({"path": cheap}, (4, 8)) == [4, 8]  # already ≤ 10 %: as given
     # the smallest budget is at least MIN_BUDGET, whatever the fixed costs
-    spp = speed.budget_spp({"path": path}, (4, 8))
-    assert costs.seconds_at(path, spp[0]) >= speed.MIN_BUDGET > costs.seconds_at(path, spp[0] - 1)
+    spp = budgets.budget_spp({"path": path}, (4, 8))
+    assert costs.seconds_at(path, spp[0]) >= budgets.MIN_BUDGET \
+        > costs.seconds_at(path, spp[0] - 1)
     # an estimator that learns (guided_path) gets MIN_LEARNER_SPP at the
     # largest; the same costs under a name that does not learn, no more
     learner = costs.fit_cost({4: [0.003 + 3 * B * 4] * 3, 16: [0.003 + 3 * B * 16] * 3})
-    spp = speed.budget_spp({"path": path, "guided_path": learner}, (4, 16))
+    spp = budgets.budget_spp({"path": path, "guided_path": learner}, (4, 16))
     def trained(seconds):
         return (seconds - learner.fixed_s) / learner.per_spp_s
-    assert trained(costs.seconds_at(path, spp[-1])) >= speed.MIN_LEARNER_SPP - 1e-9
-    assert trained(costs.seconds_at(path, spp[-1] - 4)) < speed.MIN_LEARNER_SPP
-    assert speed.budget_spp({"path": path, "mis": learner}, (4, 16))[-1] < spp[-1]
+    assert trained(costs.seconds_at(path, spp[-1])) >= budgets.MIN_LEARNER_SPP - 1e-9
+    assert trained(costs.seconds_at(path, spp[-1] - 4)) < budgets.MIN_LEARNER_SPP
+    assert budgets.budget_spp({"path": path, "mis": learner}, (4, 16))[-1] < spp[-1]
     hopeless = costs.fit_cost({4: [10.0 + 1e-9 * 4] * 3, 16: [10.0 + 1e-9 * 16] * 3})
-    assert speed.budget_spp({"path": path, "other": hopeless}, (4,)) == [4 * speed.MAX_SCALE]
+    assert budgets.budget_spp({"path": path, "other": hopeless}, (4,)) == [4 * budgets.MAX_SCALE]
 
 def test_two_runs_are_compared_on_ratios_and_reversed_pairs():
     from mcillum.validation.results import Placement, Ratio

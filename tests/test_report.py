@@ -4,6 +4,7 @@ The browser's one "external" request goes to a closed loopback port: no test
 sends a packet off this machine."""
 
 import base64
+import dataclasses
 import io
 import json
 import math
@@ -142,6 +143,20 @@ def test_scene_charts_label_axes_and_every_estimator(builder):
         assert name in svg
     for colour in COLOURS.values():
         assert colour.lower() in svg.lower()
+
+
+def test_an_estimator_too_slow_for_a_smaller_budget_is_charted_where_it_rendered():
+    """speed: an estimator that cannot fit MIN_SPP samples in a smaller
+    budget is not rendered there (budgets.fits); its chart line starts at
+    the first budget it rendered."""
+    scene = synthetic_results().scenes[0]
+    sp = scene.speed
+    budgets_ = [dataclasses.replace(b, estimators={n: r for n, r in b.estimators.items()
+                                                   if j or n != "uniform_hemisphere"})
+                for j, b in enumerate(sp.budgets)]
+    slow = dataclasses.replace(scene, speed=dataclasses.replace(sp, budgets=budgets_))
+    svg = charts.error_vs_time(slow, COLOURS)
+    assert "uniform_hemisphere" in svg and COLOURS["uniform_hemisphere"] in svg
 
 
 def test_learning_is_shown_as_a_table_and_a_curve():
@@ -285,7 +300,6 @@ def test_a_run_without_a_speed_stage_draws_no_summary(tmp_path):
     """--no-speed or failure cases only: no empty "Summary across scenes"
     chart and no link to it, and no empty scene list where there are no scenes;
     with the stage, both."""
-    import dataclasses
     res = synthetic_results()
     timed = open(report.build(str(fake_run_dir(tmp_path / "a", res))), encoding="utf-8").read()
     assert 'id="summary"' in timed and 'href="#summary"' in timed

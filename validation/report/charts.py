@@ -142,11 +142,12 @@ def _compact(svg: str) -> str:
 def error_vs_time(scene: SceneResult, colours: dict) -> str:
     """The speed stage: relMSE against wall time per render at each budget,
     log-log, with 95 % intervals on both axes (relMSE: Student-t over the K
-    renders; time: the range of the K renders); the budgets as dotted lines."""
+    renders; time: the range of the K renders); the budgets as dotted lines.
+    An estimator too slow for a smaller budget has points at the others."""
     sp = scene.speed
     fig, ax = plt.subplots(figsize=(5.6, 4.0))
-    for name in sp.budgets[0].estimators:
-        runs = [b.estimators[name] for b in sp.budgets]
+    for name in sp.budgets[-1].estimators:
+        runs = [b.estimators[name] for b in sp.budgets if name in b.estimators]
         t = np.array([np.mean(r.wall_seconds) for r in runs]) * 1e3
         t_err = np.array([[t_ - min(r.wall_seconds) * 1e3, max(r.wall_seconds) * 1e3 - t_]
                           for t_, r in zip(t, runs)]).T

@@ -1,8 +1,9 @@
 """Equal-time budgets that are met (the speed stage's renders, stages/speed.py).
 
 Each estimator renders K times at the spp its cost model gives for a budget
-T; at the second budget on, that spp is scaled by how far the model was off
-at the budget before. A render set whose median wall time misses T by more
+T (at a budget but the largest, only those that fit MIN_SPP samples in it:
+:func:`fits`); at the second budget on, that spp is scaled by how far the
+model was off at the budget before. A render set whose median wall time misses T by more
 than ON_BUDGET renders again at the spp the measured times say
 (:func:`corrected`), at most CORRECTIONS times, LOADED_CORRECTIONS where
 other processes loaded the machine meanwhile (run/load.py), and, for an
@@ -32,9 +33,69 @@ ON_BUDGET = 0.10           # a median wall time within ±10 % of its budget
 #: (docs/measurements.md, 2026-12-03).
 CORRECTIONS = 3
 LOADED_CORRECTIONS = 4     # ... where other processes loaded the machine meanwhile
+#: Samples per pixel every estimator gets at the largest budget at least,
+#: and every one rendered at a smaller budget (:func:`fits`).
+MIN_SPP = 6
+MAX_SCALE = 64             # budgets grow at most this much to outweigh the fixed cost
+#: Samples per pixel an estimator that learns gets at the largest budget at
+#: least: its training passes cost the same at any spp near it, so its
+#: efficiency rises with its spp, and between runs whose budgets differ by a
+#: few % it moved by more than its interval said. guided_path on the Cornell
+#: box at 128²: 0.72 at 24 spp, 0.78 at 26, 0.84-0.87 at 44-45; two
+#: quiet runs and a loaded one read 0.715 and 0.837 (docs/measurements.md,
+#: 2026-12-05).
+MIN_LEARNER_SPP = 40
+#: The smallest budget at least (seconds). With launches of 1-5 ms (they
+#: were 13-33 ms when a 60 ms floor was set) six rounds of four renders at
+#: 30 ms had medians within 1-9 % of each other here (docs/measurements.md,
+#: 2026-12-05, "A 30 ms floor").
+MIN_BUDGET = 0.03
 #: Other processes using more than this many cores on average during the
 #: timed renders: the machine was loaded, and the report says so.
 LOADED = 0.25
+
+
+def budget_spp(models: dict, path_spp) -> list[int]:
+    """`path`'s spp at each budget: the profile's ``path_spp`` scaled by one
+    factor (1 to MAX_SCALE), its ratios kept, so that every estimator's fixed
+    cost is at most 10 % of the largest budget, where efficiency is read,
+    every estimator renders at least MIN_SPP samples there (one sample is
+    then at most a sixth of it, and whole samples can come within ±10 % of
+    it), an estimator that learns at least MIN_LEARNER_SPP, and the
+    smallest is at least MIN_BUDGET. A smaller budget renders the
+    estimators that fit MIN_SPP in it (:func:`fits`): held to MIN_SPP in
+    the smallest, the N-direction estimators (a sample 100× path's) made
+    nine of the full profile's sixteen budget pairs 4× larger for every
+    estimator (docs/measurements.md, 2026-12-05). At the smaller budgets the
+    fixed cost is a larger share, and the chart shows what it costs there:
+    held to 10 % of the smallest, the quick profile's budgets were 2-4×
+    larger (docs/measurements.md, 2026-12-03)."""
+    path = models[REFERENCE]
+    per_spp = max(path.per_spp_s, 1e-12)
+
+    def scale_for(seconds: float, spp: int) -> float:
+        # (the factor on `spp` that makes path's time at it ``seconds``)
+        return (seconds - path.fixed_s) / per_spp / spp
+
+    worst = max(max(m.fixed_s, 0.0) for m in models.values())
+    largest = scale_for(worst / costs.MAX_OVERHEAD, max(path_spp))
+    # (path's spp defines the budgets: it renders them as they are)
+    slowest = max((max(m.fixed_s, 0.0) + MIN_SPP * m.per_spp_s
+                   for n, m in models.items() if n != REFERENCE), default=0.0)
+    fit = scale_for(slowest, max(path_spp))
+    smallest = scale_for(MIN_BUDGET, min(path_spp))
+    learner = max((max(m.fixed_s, 0.0) + MIN_LEARNER_SPP * m.per_spp_s
+                   for n, m in models.items() if registry.facts(n).learns), default=0.0)
+    trained = scale_for(learner, max(path_spp))
+    scale = min(max(1.0, largest, fit, smallest, trained), MAX_SCALE)
+    first = int(np.ceil(scale * min(path_spp)))
+    return [int(round(first * s / min(path_spp))) for s in path_spp]
+
+
+def fits(model, budget: float) -> bool:
+    """Does the estimator of cost ``model`` render MIN_SPP samples within
+    ``budget``, as its model predicts?"""
+    return max(model.fixed_s, 0.0) + MIN_SPP * model.per_spp_s <= budget
 
 
 def render(ctx) -> bool:
@@ -50,17 +111,26 @@ def render(ctx) -> bool:
     path = ctx.costs[REFERENCE]
     ctx.budgets = [(costs.seconds_at(path, s), s) for s in ctx.budget_path_spp]
     _note_overhead(ctx)
+    last = len(ctx.budgets) - 1
+    spps = [{n: path_spp if n == REFERENCE else costs.spp_for(m, budget)
+             for n, m in ctx.costs.items()
+             if n == REFERENCE or j == last or fits(m, budget)}
+            for j, (budget, path_spp) in enumerate(ctx.budgets)]
+    for n in ctx.costs:
+        left = [f"{b * 1e3:.0f}" for (b, _), spp in zip(ctx.budgets, spps) if n not in spp]
+        if left:
+            ctx.notes.append(f"{n}: {MIN_SPP} samples per pixel take more than "
+                             f"{' and '.join(left)} ms, where whole samples cannot come "
+                             "within ±10 % of the budget: not rendered there")
     if ctx.budget_stacks:                                # from the cache
         return False
-    spps = [{n: path_spp if n == REFERENCE else costs.spp_for(m, budget)
-             for n, m in ctx.costs.items()} for budget, path_spp in ctx.budgets]
     # (no untimed render first: a timed render that compiled is rendered
     # again, run/renders.timed_render)
     for j, ((budget, _), spp) in enumerate(zip(ctx.budgets, spps)):
         stacks_j, tries = {}, {n: [] for n in spp}
-        todo = dict(spp) if not j else {
-            n: _carried(ctx.costs[n], ctx.budget_tries[-1][n], ctx.budgets[j - 1][0], budget)
-            for n in spp}
+        todo = {n: s if not j or n not in ctx.budget_tries[-1] else
+                _carried(ctx.costs[n], ctx.budget_tries[-1][n], ctx.budgets[j - 1][0], budget)
+                for n, s in spp.items()}
         for attempt in range(1 + LOADED_CORRECTIONS):
             got = stacks.interleaved(
                 sub, {n: sub.integrators[n] for n in todo}, todo, d.renders,

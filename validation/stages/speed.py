@@ -13,7 +13,8 @@ in a sub-context of the scene's (``ctx.display``). Its stages, in order:
     render_budgets     (stages/budgets.py) budgets T = `path`'s model at
                        ``path_spp`` (scaled by one factor until every a ≤ 10 %
                        of the largest T, where efficiency is read, and every
-                       estimator renders ≥ MIN_SPP spp in the smallest);
+                       estimator renders ≥ MIN_SPP spp there; a smaller T
+                       renders those that fit MIN_SPP in it);
                        K renders per estimator and budget at
                        spp = max(1, round((T − a)/b)), interleaved, each timed;
                        an estimator whose median missed T by more than 10 %
@@ -66,31 +67,17 @@ from ..run import load, references, timing
 from ..run.stacks import Stack
 from ..stats import costs, metrics
 from . import budgets, common
-from .budgets import LOADED, ON_BUDGET, REFERENCE, load_se
+from .budgets import (LOADED, MAX_SCALE, MIN_BUDGET, MIN_LEARNER_SPP, MIN_SPP, ON_BUDGET,
+                      REFERENCE, budget_spp, load_se)
 from .budgets import job as _job
 
 PILOT_SPP = (1, 16)
-MAX_SCALE = 64             # budgets grow at most this much to outweigh the fixed cost
-MIN_SPP = 6                # samples per pixel every estimator gets at the smallest budget
-#: Samples per pixel an estimator that learns gets at the largest budget at
-#: least: its training passes cost the same at any spp near it, so its
-#: efficiency rises with its spp, and between runs whose budgets differ by a
-#: few % it moved by more than its interval said. guided_path on the Cornell
-#: box at 128²: 0.72 at 24 spp, 0.78 at 26, 0.84-0.87 at 44-45; two
-#: quiet runs and a loaded one read 0.715 and 0.837 (docs/measurements.md,
-#: 2026-12-05).
-MIN_LEARNER_SPP = 40
-#: The smallest budget at least (seconds). With launches of 1-5 ms (they
-#: were 13-33 ms when a 60 ms floor was set) six rounds of four renders at
-#: 30 ms had medians within 1-9 % of each other here (docs/measurements.md,
-#: 2026-12-05, "A 30 ms floor").
-MIN_BUDGET = 0.03
 #: Per-render relMSE varying more than this (coefficient of variation): rare
 #: large errors carry it, and its interval may be too narrow. Synthetic
 #: lognormal σ = 1 and Pareto errors covered 80-90 % at K = 4; the quick
 #: profile's estimators stay below 0.11 (docs/measurements.md, 2026-12-02).
 HEAVY_CV = 0.5
-CACHE_VERSION = 3
+CACHE_VERSION = 4
 
 
 # ----------------------------- The display scene --------------------------------
@@ -125,38 +112,6 @@ def time_costs(ctx) -> None:
                  for n, spps in ctx.timings.items()}
     if ctx.budget_path_spp is None:
         ctx.budget_path_spp = budget_spp(ctx.costs, ctx.plan.display.path_spp)
-
-
-def budget_spp(models: dict, path_spp) -> list[int]:
-    """`path`'s spp at each budget: the profile's ``path_spp`` scaled by one
-    factor (1 to MAX_SCALE), its ratios kept, so that every estimator's fixed
-    cost is at most 10 % of the largest budget, where efficiency is read,
-    every estimator renders at least MIN_SPP samples in the smallest (one
-    sample is then at most a sixth of it, and whole samples can come within
-    ±10 % of it), an estimator that learns at least MIN_LEARNER_SPP in the
-    largest, and the smallest is at least MIN_BUDGET. At the smaller
-    budgets the fixed cost is a larger share, and the chart shows what it
-    costs there: held to 10 % of the smallest, the quick profile's budgets
-    were 2-4× larger (docs/measurements.md, 2026-12-03)."""
-    path = models[REFERENCE]
-    per_spp = max(path.per_spp_s, 1e-12)
-
-    def scale_for(seconds: float, spp: int) -> float:
-        # (the factor on `spp` that makes path's time at it ``seconds``)
-        return (seconds - path.fixed_s) / per_spp / spp
-
-    worst = max(max(m.fixed_s, 0.0) for m in models.values())
-    largest = scale_for(worst / costs.MAX_OVERHEAD, max(path_spp))
-    # (path's spp defines the budgets: it renders them as they are)
-    slowest = max((max(m.fixed_s, 0.0) + MIN_SPP * m.per_spp_s
-                   for n, m in models.items() if n != REFERENCE), default=0.0)
-    smallest = scale_for(max(slowest, MIN_BUDGET), min(path_spp))
-    learner = max((max(m.fixed_s, 0.0) + MIN_LEARNER_SPP * m.per_spp_s
-                   for n, m in models.items() if registry.facts(n).learns), default=0.0)
-    trained = scale_for(learner, max(path_spp))
-    scale = min(max(1.0, largest, smallest, trained), MAX_SCALE)
-    first = int(np.ceil(scale * min(path_spp)))
-    return [int(round(first * s / min(path_spp))) for s in path_spp]
 
 
 # --------------------------------- Budgets ---------------------------------------
