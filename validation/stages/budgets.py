@@ -3,9 +3,9 @@
 Each estimator renders K times at the spp its cost model gives for a budget
 T (at a budget but the largest, only those that fit MIN_SPP samples in it:
 :func:`fits`); at the second budget on, that spp is scaled by how far the
-model was off at the budget before. A render set whose median wall time misses T by more
-than ON_BUDGET renders again at the spp the measured times say
-(:func:`corrected`), at most CORRECTIONS times, LOADED_CORRECTIONS where
+model was off at the budget before. A render set whose median wall time
+misses T by more than ON_BUDGET renders again at the spp the measured times
+say (:func:`corrected`), at most CORRECTIONS times, LOADED_CORRECTIONS where
 other processes loaded the machine meanwhile (run/load.py), and, for an
 estimator that learns, no more once tries at adjacent spp fell on both sides
 of T (:func:`unreachable`: its time steps where it adds a training pass, and
