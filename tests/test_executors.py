@@ -73,6 +73,8 @@ def test_a_timed_render_that_compiled_is_rendered_again(llvm):
     assert np.array_equal(first.image, renders.render(scene, integrator, 3, seed=1).image)
     warm = renders.timed_render(scene, integrator, 3, seed=2)
     assert "compile_seconds" not in warm.meta
+    assert (first.first_seconds, warm.first_seconds) == (first.meta["compile_seconds"],
+                                                         warm.seconds)
     assert not np.array_equal(first.image, warm.image)     # (the seed decides)
     assert not dr.flag(dr.JitFlag.KernelHistory)
 

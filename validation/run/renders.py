@@ -258,6 +258,12 @@ class Render:
     #: CPU seconds other processes used meanwhile (run/load.py; None: unknown).
     others_seconds: float | None = None
 
+    @property
+    def first_seconds(self) -> float:
+        """The time of this job's first render, compilation included: the
+        render :func:`timed_render` set aside, if it did, else ``seconds``."""
+        return self.meta.get("compile_seconds", self.seconds)
+
 
 def split_aovs(image: np.ndarray, names, spp: int = 1) -> tuple[np.ndarray, dict]:
     """(radiance channels, AOV groups) of a developed film of ``spp``
@@ -317,26 +323,29 @@ def timed_render(scene: mi.Scene, integrator: mi.Integrator, spp: int,
     by a shift where spp is a power of two and by a division otherwise, so
     an estimator's first spp of the other kind compiles its kernel (1-7×
     the render), and guided_path compiles its training passes at each new
-    spp. An untimed render before every timed set paid a whole render where
-    nothing compiled (docs/measurements.md, 2026-12-05).
-    ``meta["compile_seconds"]``: the time of the render set aside, if any."""
-    set_aside = None
-    while True:
-        was = dr.flag(dr.JitFlag.KernelHistory)
-        dr.kernel_history()                      # (empty it: this render's kernels only)
-        dr.set_flag(dr.JitFlag.KernelHistory, True)
-        try:
-            out = render(scene, integrator, spp, seed, watch_load=True)
-            fresh = [k for k in dr.kernel_history() if not k.get("cache_hit", 1)]
-        finally:
-            dr.set_flag(dr.JitFlag.KernelHistory, was)
-        # (once: a kernel that compiles in every render is the render's cost)
-        if not fresh or set_aside is not None:
-            break
-        set_aside = out.seconds
-    if set_aside is not None:
-        out.meta["compile_seconds"] = set_aside
+    spp; a correction may ask either (docs/measurements.md, 2026-12-05).
+    ``meta["compile_seconds"]``: the time of the render set aside, if any
+    (:attr:`Render.first_seconds`)."""
+    first, compiled = _watched(scene, integrator, spp, seed)
+    if not compiled:
+        return first
+    # (once: a kernel that compiles in every render is the render's cost)
+    out, _ = _watched(scene, integrator, spp, seed)
+    out.meta["compile_seconds"] = first.seconds
     return out
+
+
+def _watched(scene, integrator, spp: int, seed: int) -> tuple[Render, bool]:
+    """(:func:`render` watching the load, whether it compiled a kernel):
+    Dr.Jit's kernel history, on for this render only, left as it was."""
+    was = dr.flag(dr.JitFlag.KernelHistory)
+    dr.kernel_history()                          # (empty it: this render's kernels only)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        out = render(scene, integrator, spp, seed, watch_load=True)
+        return out, any(not k.get("cache_hit", 1) for k in dr.kernel_history())
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, was)
 
 
 def launch(scene, integrator, spp: int, seed):

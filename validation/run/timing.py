@@ -37,7 +37,7 @@ def warm(executor, job, spp: dict[str, int], seed: int) -> dict[str, float]:
     renders.timed_render set aside, if any)."""
     names = list(spp)
     outs = executor.render([job(n, spp[n], seed) for n in names], timed=True)
-    return {n: out.meta.get("compile_seconds", out.seconds) for n, out in zip(names, outs)}
+    return {n: out.first_seconds for n, out in zip(names, outs)}
 
 
 def timed(executor, job, plan: dict[str, list[int]], rounds: int,

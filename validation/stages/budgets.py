@@ -95,7 +95,7 @@ def budget_spp(models: dict, path_spp) -> list[int]:
 def fits(model, budget: float) -> bool:
     """Does the estimator of cost ``model`` render MIN_SPP samples within
     ``budget``, as its model predicts?"""
-    return max(model.fixed_s, 0.0) + MIN_SPP * model.per_spp_s <= budget
+    return costs.seconds_at(model, MIN_SPP) <= budget
 
 
 def render(ctx) -> bool:

@@ -121,7 +121,7 @@ def compile_kernels(ctx) -> None:
         return
     seed = seeds.stream("compile").seed()
     batch = [ctx.job(integ, 1, seed) for integ in ctx.integrators.values()]
-    ctx.compile_seconds = {n: out.meta.get("compile_seconds", out.seconds) for n, out in
+    ctx.compile_seconds = {n: out.first_seconds for n, out in
                            zip(ctx.integrators, ctx.render(batch, None, timed=True))}
 
 
