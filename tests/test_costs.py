@@ -9,7 +9,7 @@ from scipy import stats
 
 from mcillum.validation.results import Interval
 from mcillum.validation.stages import budgets, speed
-from mcillum.validation.stats import costs
+from mcillum.validation.stats import costs, metrics, tails
 
 from conftest import disagreements
 
@@ -322,3 +322,60 @@ def test_a_learner_is_noted_with_its_figure_at_every_budget():
     assert len(notes) == 1 and notes[0].startswith("guided_path"), notes
     assert notes[0].index("0.7 [") < notes[0].index("0.9 [") and "at 30 ms (20 spp)" in notes[0]
     assert speed.learner_notes(found[1:]) == []
+
+
+def _firefly_renders(rng, shape: float, rate: float, k: int = 6, res: int = 64):
+    """K renders of a flat image (reference 1) with Gaussian noise (σ = 0.3)
+    and, at ``rate`` of the pixels, a firefly 10 + 5·Y with Y generalized
+    Pareto of shape ``shape``: its squared error's tail has shape 2·shape.
+    Returns (renders, reference, the true mean relMSE)."""
+    x = 1 + 0.3 * rng.standard_normal((k, res, res, 1))
+    hit = rng.random(x.shape) < rate
+    x = np.where(hit, 10 + 5 * stats.genpareto.rvs(shape, size=x.shape, random_state=rng), x)
+    # E(x − 1)² of a firefly: (9 + 5Y)², E Y = 1/(1 − ξ), E Y² = 2/((1 − ξ)(1 − 2ξ))
+    ey, ey2 = 1 / (1 - shape), 2 / ((1 - shape) * (1 - 2 * shape))
+    truth = ((1 - rate) * 0.09 + rate * (81 + 90 * ey + 25 * ey2)) / (1 + metrics.EPSILON)
+    return np.repeat(x, 3, axis=-1), np.ones((res, res, 3)), truth
+
+
+@pytest.mark.parametrize("shape, flagged_at_most, flagged_at_least", [
+    (-0.2, 10, 0),          # bounded fireflies (squared error's tail −0.4): the t-interval holds
+    (0.4, 100, 95),         # squared error's tail 0.8: finite mean, no finite variance
+])
+def test_fireflies_whose_error_renders_cannot_bound_make_the_efficiency_an_upper_bound(
+        shape, flagged_at_most, flagged_at_least):
+    """Fireflies at 2 % of 64² pixels over K = 6 renders (about 490 of them),
+    100 trials on a seed the rule's thresholds were not tried on
+    (docs/measurements.md, 2026-12-05, "Efficiency under heavy tails"; seeds
+    7 and 8 agree). Light tail: tails.error_tail flags at most 10, and the
+    efficiency's Student-t interval covers the truth as often as it claims.
+    Heavy tail (squared error of shape 0.8): that interval covers it in
+    about two trials of three, so it does not; the rule flags at least 95,
+    and the interval the speed stage then states, [0, its upper end],
+    covers it as often as a 95 % interval must."""
+    rng = np.random.default_rng(2026)
+    trials, flagged, plain, stated = 100, 0, 0, 0
+    for _ in range(trials):
+        x, r, truth = _firefly_renders(rng, shape, 0.02)
+        e = costs.efficiency(metrics.per_render_relmse(x, r), 0.1 * rng.lognormal(0, 0.02, 6))
+        true = 1 / (truth * 0.1)
+        covers = e.ci.low <= true <= e.ci.high
+        tail = tails.error_tail(x, r)
+        flagged += tail.unbounded
+        plain += covers
+        stated += (true <= e.ci.high) if tail.unbounded else covers
+    assert flagged_at_least <= flagged <= flagged_at_most, flagged
+    assert stated >= coverage_floor(trials), stated
+    if shape > 0.25:
+        assert plain < coverage_floor(trials), plain
+
+
+def test_an_error_tail_without_fireflies_is_bounded():
+    """Renders with no firefly: nothing carried, no shape, bounded; the text
+    of a heavy one names its count, share and shape."""
+    rng = np.random.default_rng(1)
+    r = np.ones((16, 16, 3))
+    tail = tails.error_tail(1 + 0.1 * rng.standard_normal((4, 16, 16, 3)), r)
+    assert (tail.fireflies, tail.share, tail.shape, tail.unbounded) == (0, 0.0, None, False)
+    heavy = tails.ErrorTail(fireflies=120, share=0.6, shape=0.71, unbounded=True)
+    assert "120 fireflies carry 60 %" in heavy.text() and "0.71" in heavy.text()

@@ -267,16 +267,18 @@ def efficiency_summary(results: Results, colours: dict) -> str:
              if n != reference]
     fig, ax = plt.subplots(figsize=(max(7.5, 2.0 + 0.75 * len(scenes)), 3.9))
     width = 0.8 / max(len(names), 1)
-    hatch = {"reference_limited": "//", "biased": "xx"}
+    hatch = {"reference_limited": "//", "biased": "xx", "heavy_tailed": "\\\\"}
     for j, name in enumerate(names):
         ratio, low, high, kinds = [], [], [], []
         for s in scenes:
             r = s.speed.efficiency_vs_path.get(name)
             bound = r is not None and not np.isfinite(r.ci.high)
-            # a lower bound is drawn at its bound, with no interval
-            ratio.append((r.ci.low if bound else r.ratio) if r else np.nan)
-            low.append(0.0 if bound or not r else r.ratio - r.ci.low)
-            high.append(0.0 if bound or not r else r.ci.high - r.ratio)
+            upper = r is not None and r.kind == "heavy_tailed" and np.isfinite(r.ci.high)
+            # a bound (lower or upper) is drawn at its bound, with no interval
+            ratio.append((r.ci.low if bound else r.ci.high if upper else r.ratio)
+                         if r else np.nan)
+            low.append(0.0 if bound or upper or not r else r.ratio - r.ci.low)
+            high.append(0.0 if bound or upper or not r else r.ci.high - r.ratio)
             kinds.append("reference_limited" if bound else (r.kind if r else "unbiased"))
         x = np.arange(len(scenes)) + (j - (len(names) - 1) / 2) * width
         bars = ax.bar(x, ratio, width, color=colours[name], label=name,
@@ -292,7 +294,8 @@ def efficiency_summary(results: Results, colours: dict) -> str:
                   ha="right")
     ax.set_ylabel("efficiency / efficiency of path")
     ax.set_title("Efficiency 1/(relMSE·time) relative to Mitsuba's path, at equal time\n"
-                 "(hatched //: a lower bound only; xx: biased by design)",
+                 "(hatched //: a lower bound only; \\: an upper bound only, heavy-tailed; "
+                 "xx: biased by design)",
                  fontsize=9)
     ax.grid(True, axis="y", which="both", alpha=0.3)
     # (plain swatches: a hatched first bar would hatch its estimator's key;

@@ -51,7 +51,9 @@ VERSION = 1
 #: 17: a quadrature's ``calibration`` carries ``spp`` (the rung below the
 #: ladder's top, where the reference resolves the error bars at a quarter of
 #: the cost) and each ``bias`` row its ``renders``.
-MINOR_VERSION = 17
+#: 18: an efficiency ratio's ``kind`` may be ``heavy_tailed`` (its interval
+#: then runs from 0: an upper bound).
+MINOR_VERSION = 18
 
 
 @dataclass(kw_only=True)

@@ -75,13 +75,16 @@ KINDS = {
                          "a lower bound (the estimator may be exact here)",
     "biased": "biased by design: relMSE includes bias², which more time does not "
               "remove, so the figure holds at this budget only",
+    "heavy_tailed": "rare large errors (fireflies) carry its error, with a tail K renders "
+                    "cannot bound: an upper bound (its mean error may be larger than "
+                    "they show)",
 }
 
 
 @dataclass(kw_only=True)
 class Ratio:
     ratio: float
-    ci: Interval                        # high = inf: a lower bound
+    ci: Interval                        # high = inf: a lower bound; low = 0: an upper one
     kind: str = "unbiased"              # a key of KINDS (minor version 9)
 
 

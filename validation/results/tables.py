@@ -159,10 +159,14 @@ def ratio_text(r) -> str:
     """An efficiency ratio (speed.Ratio) as the summary and the report show
     it: "0.48 [0.39, 0.59]"; a lower bound as "≥ 2.1 (reference-limited)"
     (the error is the reference's noise) or "≥ 0.02 (its relMSE too
-    uncertain …)" (rare large errors); an estimator biased by design's with
-    "(biased: this budget only)"."""
+    uncertain …)" (rare large errors); an upper bound as "≤ 3e-05
+    (heavy-tailed)" (fireflies its renders cannot bound); an estimator
+    biased by design's with "(biased: this budget only)"."""
     if r is None or not np.isfinite(r.ratio):
         return "—"
+    if r.kind == "heavy_tailed":
+        return (f"≤ {r.ci.high:.3g} (heavy-tailed)" if np.isfinite(r.ci.high) else
+                f"{r.ratio:.3g}, unbounded either way (heavy-tailed)")
     if not np.isfinite(r.ci.high):          # (the net relMSE may be 0)
         why = ("reference-limited" if r.kind == "reference_limited"
                else "its relMSE too uncertain for an upper end")

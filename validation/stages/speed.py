@@ -37,7 +37,10 @@ in a sub-context of the scene's (``ctx.display``). Its stages, in order:
                        ties, FLIP; an estimator whose relMSE is within 2× of
                        the share is flagged (its efficiency is a lower bound:
                        in the furnace the cosine estimator is exact), one
-                       biased by design is marked so; the cores other
+                       biased by design is marked so, and one whose
+                       fireflies carry an error K renders cannot bound
+                       (stats/tails.py: error_tail) is heavy-tailed, its
+                       efficiency an upper bound; the cores other
                        processes used while the renders were timed
                        (run/load.py), and a note above LOADED
     save_display       images/<scene>/display/: the reference; per estimator
@@ -62,21 +65,16 @@ from mcillum import files
 from mcillum.integrators import registry
 
 from ..plan import seeds
-from ..results import Budget, BudgetRun, Ratio, Speed, Try, layout
+from ..results import Budget, BudgetRun, Interval, Ratio, Speed, Try, layout
 from ..run import load, references, timing
 from ..run.stacks import Stack
-from ..stats import costs, metrics
+from ..stats import costs, metrics, tails
 from . import budgets, common
 from .budgets import (LOADED, MAX_SCALE, MIN_BUDGET, MIN_LEARNER_SPP, MIN_SPP, ON_BUDGET,
                       REFERENCE, budget_spp, load_se)
 from .budgets import job as _job
 
 PILOT_SPP = (1, 16)
-#: Per-render relMSE varying more than this (coefficient of variation): rare
-#: large errors carry it, and its interval may be too narrow. Synthetic
-#: lognormal σ = 1 and Pareto errors covered 80-90 % at K = 4; the quick
-#: profile's estimators stay below 0.11 (docs/measurements.md, 2026-12-02).
-HEAVY_CV = 0.5
 CACHE_VERSION = 4
 
 
@@ -145,9 +143,12 @@ def measure_speed(ctx) -> None:
     r = ref.mean[..., :3]
     share = costs.reference_share(r, ref.variance_of_mean, ref.passes)
     budgets = []
+    last = len(ctx.budgets) - 1
     for j, ((budget, path_spp), by_name) in enumerate(zip(ctx.budgets, ctx.budget_stacks)):
-        runs = {n: _budget_run(ctx, n, u, budget, r, ctx.budget_tries[j][n])
+        read = {n: _budget_run(ctx, n, u, budget, r, ctx.budget_tries[j][n], j == last)
                 for n, u in by_name.items()}
+        # (tail: the largest budget's when the loop ends, as the kinds read it)
+        runs, tail = {n: b for n, (b, _) in read.items()}, {n: t for n, (_, t) in read.items()}
         budgets.append(Budget(seconds=budget, path_spp=path_spp, estimators=runs,
                               reference_relmse=share.value, reference_relmse_se=share.se))
     top = budgets[-1].estimators
@@ -159,12 +160,17 @@ def measure_speed(ctx) -> None:
     for n, run in top.items():
         ratio, ci = costs.ratio(eff[n], eff[REFERENCE],
                                 min(len(run.relmse_per_render), len(base.relmse_per_render)))
-        ratios[n] = Ratio(ratio=ratio, ci=ci, kind=_kind(n, run, share))
+        ratios[n] = Ratio(ratio=ratio, ci=ci, kind=_kind(n, run, share, tail[n]))
         if ratios[n].kind == "reference_limited":
             ctx.notes.append(f"{n}: its relMSE {run.relmse:.3g} is within "
                              f"{metrics.RESOLVED:g}× of the "
                              f"reference's own share {share.value:.3g}: the reference "
                              "limits it, and its efficiency is a lower bound")
+        elif ratios[n].kind == "heavy_tailed":
+            # (the interval's upper end holds: a mean over renders that
+            # have not yet seen the rare errors reads the error low)
+            ratios[n].ci = Interval(0.0, ci.high)
+            eff[n] = dataclasses.replace(eff[n], ci=Interval(0.0, eff[n].ci.high))
     ctx.notes.extend(learner_notes(budgets))
     ranking = costs.ranking({n: (e.value, e.ci) for n, e in eff.items()})
     # the pilot's renders, every repeat: a line through the budgets' renders
@@ -210,11 +216,13 @@ def learner_notes(found: list[Budget]) -> list[str]:
     return notes
 
 
-def _kind(name: str, run: BudgetRun, share: costs.Share) -> str:
+def _kind(name: str, run: BudgetRun, share: costs.Share, tail: tails.ErrorTail) -> str:
     """What the estimator's efficiency figure means (results.KINDS)."""
     if not registry.facts(name).unbiased:
         return "biased"
-    return "reference_limited" if run.relmse < metrics.RESOLVED * share.value else "unbiased"
+    if run.relmse < metrics.RESOLVED * share.value:
+        return "reference_limited"
+    return "heavy_tailed" if tail.unbounded and name != REFERENCE else "unbiased"
 
 
 def _load(ctx) -> tuple[float | None, int, bool]:
@@ -239,7 +247,9 @@ def _load(ctx) -> tuple[float | None, int, bool]:
 
 
 def _budget_run(ctx, name: str, stack: Stack, budget: float, r: np.ndarray,
-                tries: list[Try]) -> BudgetRun:
+                tries: list[Try], top: bool) -> tuple[BudgetRun, tails.ErrorTail]:
+    """One estimator's K renders at one budget, and their error's tail
+    (stats/tails.py), noted where K renders cannot bound it."""
     per = metrics.per_render_relmse(stack.images, r).tolist()
     mean, ci = costs.relmse_interval(per)
     median = float(np.median(stack.seconds))
@@ -265,16 +275,19 @@ def _budget_run(ctx, name: str, stack: Stack, budget: float, r: np.ndarray,
                     f"{budget * 1e3:.1f} ms budget ({100 * (median / budget - 1):+.0f} %)"
                     f"{again}: its times varied more than the spp could follow")
         ctx.notes.append(f"{name} at {budget * 1e3:.1f} ms: {note}")
-    spread = float(np.std(per, ddof=1) / np.mean(per)) if len(per) > 1 and np.mean(per) > 0 \
-        else 0.0
-    if spread > HEAVY_CV:
-        ctx.notes.append(f"{name} at {budget * 1e3:.1f} ms: its relMSE varies by "
-                         f"{100 * spread:.0f} % between renders: rare large errors carry it, "
-                         "and its 95 % intervals may be too narrow (more renders, K, would "
-                         "tell)")
+    tail = tails.error_tail(stack.images, r)
+    if tail.unbounded:
+        then = ""
+        if top:         # (where efficiency is read)
+            then = (", and its efficiency is an upper bound" if name != REFERENCE else
+                    ", and every efficiency ratio, which divides by its efficiency, may "
+                    "read low")
+        ctx.notes.append(f"{name} at {budget * 1e3:.1f} ms: {tail.text()}: its K renders "
+                         "cannot bound its mean error, so its relMSE may be larger than its "
+                         f"interval says{then}")
     return BudgetRun(spp=stack.spp, wall_seconds=[float(s) for s in stack.seconds], relmse=mean,
                      relmse_ci=ci, relmse_per_render=per, on_budget=on, note=note,
-                     tries=list(tries))
+                     tries=list(tries)), tail
 
 
 # --------------------------------- Images ----------------------------------------

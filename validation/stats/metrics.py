@@ -57,9 +57,14 @@ def mse(x, r) -> float:
     return float(np.mean((_finite(x) - r) ** 2))
 
 
-def relmse(x, r, eps: float = EPSILON) -> float:
+def squared_relative_error(x, r, eps: float = EPSILON) -> np.ndarray:
+    """(x − r)² / (r² + ε) per value: what :func:`relmse` averages."""
     r = np.asarray(r, np.float64)
-    return float(np.mean((_finite(x) - r) ** 2 / (r ** 2 + eps)))
+    return (_finite(x) - r) ** 2 / (r ** 2 + eps)
+
+
+def relmse(x, r, eps: float = EPSILON) -> float:
+    return float(np.mean(squared_relative_error(x, r, eps)))
 
 
 def per_render_relmse(renders, r, eps: float = EPSILON) -> np.ndarray:

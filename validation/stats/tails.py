@@ -22,21 +22,36 @@ trusts a sample variance that rests on a few of them. Definitions (used by
   uses): the worst render's relMSE is over ``TAIL_RATIO`` × the median and
   over ``TAIL_RELMSE`` (a near-exact estimator's ratio of tiny numbers names
   no tail), or fireflies are over ``TAIL_FIREFLIES`` of all pixels.
+* an error whose mean K renders cannot bound (:func:`error_tail`): the
+  fireflies carry at least ``TAIL_ERROR_SHARE`` of the renders' squared
+  relative error, and either they are fewer than ``TAIL_FIT_EVENTS`` or the
+  generalized Pareto shape fitted to their errors (maximum likelihood over
+  the excess above the smallest) is at least ``TAIL_SHAPE``. A tail of
+  shape ≥ ½ has no finite variance, so a mean over renders has no normal
+  limit and the Student-t interval misses the rare errors it has not seen
+  yet (tests/test_costs.py measures how often).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
+from scipy import stats
 
 from mcillum.envmaps.sun import luminance
 
 from ..results import Percentiles, SppToMatch
+from . import metrics
 
 FIREFLY_FACTOR = 10.0
 FIREFLY_FLOOR = 0.01
 TAIL_RATIO = 10.0
 TAIL_RELMSE = 1e-3
 TAIL_FIREFLIES = 1e-3
+TAIL_ERROR_SHARE = 0.25
+TAIL_SHAPE = 0.5
+TAIL_FIT_EVENTS = 20
 
 
 def bad_values(x: np.ndarray) -> tuple[int, int]:
@@ -116,6 +131,45 @@ def largest_event(stacks, reference: np.ndarray, spps) -> float:
             excess = (x - r)[fire].max()
             largest = max(largest, float(spp * excess))
     return largest
+
+
+@dataclass(frozen=True)
+class ErrorTail:
+    """What the fireflies of K renders carry of their squared relative error
+    (:func:`error_tail`)."""
+
+    fireflies: int
+    share: float                # of the renders' summed squared relative error
+    shape: float | None         # generalized Pareto shape of their errors (None: too few)
+    unbounded: bool             # K renders cannot bound the mean error from above
+
+    def text(self) -> str:
+        """"fireflies (N) carry S % of its squared error, their tail's shape k"."""
+        shape = (f", their tail's shape {self.shape:.2f} (≥ {TAIL_SHAPE:g}: no finite "
+                 "variance)" if self.shape is not None else
+                 f", too few (< {TAIL_FIT_EVENTS}) to give their tail's shape")
+        return (f"{self.fireflies} fireflies carry {100 * self.share:.0f} % of its squared "
+                f"error{shape}")
+
+
+def error_tail(renders: np.ndarray, reference: np.ndarray) -> ErrorTail:
+    """The fireflies (:func:`firefly_mask`) of ``renders`` (K, H, W, C)
+    against ``reference``, the share of the squared relative error
+    (metrics.squared_relative_error, averaged over RGB) they carry, the
+    generalized Pareto shape of their errors, and whether the rule of the
+    module doc says K renders cannot bound the mean error."""
+    x, r = np.asarray(renders[..., :3], np.float64), np.asarray(reference[..., :3], np.float64)
+    e = metrics.squared_relative_error(x, r).mean(axis=-1)              # (K, H, W)
+    fire = firefly_mask(np.nan_to_num(x), r)
+    total = float(e.sum())
+    share = float(e[fire].sum()) / total if total > 0 else 0.0
+    count = int(fire.sum())
+    shape = None
+    if count >= TAIL_FIT_EVENTS:
+        v = e[fire]
+        shape = float(stats.genpareto.fit(v - v.min(), floc=0)[0])
+    unbounded = share >= TAIL_ERROR_SHARE and (shape is None or shape >= TAIL_SHAPE)
+    return ErrorTail(fireflies=count, share=share, shape=shape, unbounded=unbounded)
 
 
 def spp_to_match(relmse_est: np.ndarray, relmse_ref: np.ndarray, spp: int,
