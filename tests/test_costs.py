@@ -379,3 +379,15 @@ def test_an_error_tail_without_fireflies_is_bounded():
     assert (tail.fireflies, tail.share, tail.shape, tail.unbounded) == (0, 0.0, None, False)
     heavy = tails.ErrorTail(fireflies=120, share=0.6, shape=0.71, unbounded=True)
     assert "120 fireflies carry 60 %" in heavy.text() and "0.71" in heavy.text()
+
+
+def test_a_relmse_with_a_lower_bound_only_reads_so():
+    """results.relmse_text: a two-sided interval, and one whose upper end is
+    gone (heavy-tailed, or read back from JSON as NaN) as "[low, ∞)"."""
+    from types import SimpleNamespace
+    from mcillum.validation.results import relmse_text
+    run = SimpleNamespace(relmse=0.21, relmse_ci=Interval(0.143, 0.278))
+    assert relmse_text(run) == "0.21 [0.143, 0.278]"
+    for high in (np.inf, np.nan):
+        run.relmse_ci = Interval(0.143, high)
+        assert relmse_text(run) == "0.21 [0.143, ∞)"

@@ -142,7 +142,8 @@ def _compact(svg: str) -> str:
 def error_vs_time(scene: SceneResult, colours: dict) -> str:
     """The speed stage: relMSE against wall time per render at each budget,
     log-log, with 95 % intervals on both axes (relMSE: Student-t over the K
-    renders; time: the range of the K renders); the budgets as dotted lines.
+    renders, an arrow up where it has a lower bound only; time: the range of
+    the K renders); the budgets as dotted lines.
     An estimator too slow for a smaller budget has points at the others."""
     sp = scene.speed
     fig, ax = plt.subplots(figsize=(5.6, 4.0))
@@ -152,10 +153,14 @@ def error_vs_time(scene: SceneResult, colours: dict) -> str:
         t_err = np.array([[t_ - min(r.wall_seconds) * 1e3, max(r.wall_seconds) * 1e3 - t_]
                           for t_, r in zip(t, runs)]).T
         e = np.array([r.relmse for r in runs])
-        e_err = np.array([[r.relmse - r.relmse_ci.low, r.relmse_ci.high - r.relmse]
-                          for r in runs]).T
+        # a relMSE with a lower bound only (heavy-tailed, stats/tails.py):
+        # an arrow up from it, a factor 2 long
+        bound = np.array([not np.isfinite(r.relmse_ci.high) for r in runs])
+        e_err = np.array([[r.relmse - r.relmse_ci.low,
+                           r.relmse if b else r.relmse_ci.high - r.relmse]
+                          for r, b in zip(runs, bound)]).T
         ax.errorbar(t, e, yerr=np.maximum(e_err, 0), xerr=np.maximum(t_err, 0), fmt="o-",
-                    color=colours[name], label=name, ms=4, capsize=2, lw=1.2)
+                    color=colours[name], label=name, ms=4, capsize=2, lw=1.2, lolims=bound)
     for b in sp.budgets:
         ax.axvline(b.seconds * 1e3, color="#999999", ls=":", lw=1)
     share = sp.budgets[-1].reference_relmse

@@ -11,7 +11,7 @@ import numpy as np
 
 from mcillum import files, images
 
-from ..results import SceneResult, kinds_shown, layout, ranking_text, ratio_text
+from ..results import SceneResult, kinds_shown, layout, ranking_text, ratio_text, relmse_text
 from ..stats import metrics
 from . import charts
 from .parts import (ERROR_LEVELS, FLIP_LEVELS, error_map, flip_map, fmt, img, map_colours,
@@ -254,7 +254,7 @@ def _speed_table(sp, colours: dict) -> str:
         rows.append(
             f"<tr><td>{swatch(n, colours)}</td><td>{p.rank}{html.escape(tied)}</td>"
             f"<td>{html.escape(ratio_text(r))}</td>"
-            f"<td>{fmt(run.relmse)} [{fmt(run.relmse_ci.low)}, {fmt(run.relmse_ci.high)}]</td>"
+            f"<td>{relmse_text(run, fmt)}</td>"
             f"<td>{run.spp}</td><td class={'ok' if run.on_budget else 'warn'}>{wall:.0f}{tries}</td>"
             f"<td>{c.fixed_s * 1e3:.1f} [{c.fixed_s_ci.low * 1e3:.1f}, "
             f"{c.fixed_s_ci.high * 1e3:.1f}]</td>"

@@ -29,5 +29,5 @@ from .scene import (Convergence, EstimatorResult, RunStats, SceneResult,  # noqa
 from .speed import (KINDS, Budget, BudgetRun, CostModel, Interval, Placement, Ratio,  # noqa: F401
                     Speed, Try)
 from .tables import (CSV_FIELDS, counts_line, kinds_shown, learning_summary,  # noqa: F401
-                     quadrature_summary, ranking_text, ratio_text, speed_summary, summary,
-                     wall_text, write_csv, write_junit, write_summary)
+                     quadrature_summary, ranking_text, ratio_text, relmse_text, speed_summary,
+                     summary, wall_text, write_csv, write_junit, write_summary)

@@ -177,6 +177,15 @@ def ratio_text(r) -> str:
     return text + extra
 
 
+def relmse_text(run, number=lambda x: f"{x:.3g}") -> str:
+    """A budget run's relMSE and its 95 % interval, "0.21 [0.14, 0.28]"; one
+    with a lower bound only (heavy-tailed fireflies, stats/tails.py) as
+    "0.21 [0.14, ∞)". ``number`` formats each figure."""
+    high = run.relmse_ci.high
+    end = f"{number(high)}]" if np.isfinite(high) else "∞)"
+    return f"{number(run.relmse)} [{number(run.relmse_ci.low)}, {end}"
+
+
 def speed_summary(speed: Speed) -> list[str]:
     """The speed stage's lines of summary.md: budgets, ratios, ranking, notes."""
     top = speed.budgets[-1]
@@ -189,7 +198,7 @@ def speed_summary(speed: Speed) -> list[str]:
         ratio = ratio_text(speed.efficiency_vs_path.get(name))
         wall = sorted(run.wall_seconds)[len(run.wall_seconds) // 2] * 1e3
         lines.append(f"| {name} | {run.spp} | {wall:.0f}{'' if run.on_budget else ' (off budget)'}"
-                     f" | {run.relmse:.3g} [{run.relmse_ci.low:.3g}, {run.relmse_ci.high:.3g}]"
+                     f" | {relmse_text(run)}"
                      f" | {ratio} |")
     return lines + [f"- {n}" for n in speed.notes] + \
         [f"- efficiency: {k}: {v}" for k, v in kinds_shown(speed).items()]
