@@ -148,6 +148,15 @@ def test_budgets_grow_until_the_fixed_cost_is_a_tenth():
     assert budgets.budget_spp({"path": path, "mis": learner}, (4, 16))[-1] < spp[-1]
     hopeless = costs.fit_cost({4: [10.0 + 1e-9 * 4] * 3, 16: [10.0 + 1e-9 * 16] * 3})
     assert budgets.budget_spp({"path": path, "other": hopeless}, (4,)) == [4 * budgets.MAX_SCALE]
+    # path's model with a fixed cost fitted below 0 (times that grow faster
+    # than spp): the budgets are path's times as costs.seconds_at reads
+    # them, a counted as 0, so the learner's MIN_LEARNER_SPP is met by the
+    # smallest whole factor, not by one 20 ms larger
+    below = costs.fit_cost({16: [0.02] * 3, 64: [0.14] * 3})
+    assert below.fixed_s < 0
+    spp = budgets.budget_spp({"path": below, "guided_path": learner}, (4, 16))
+    assert trained(costs.seconds_at(below, spp[-1])) >= budgets.MIN_LEARNER_SPP - 1e-9
+    assert trained(costs.seconds_at(below, spp[-1] - 4)) < budgets.MIN_LEARNER_SPP
 
 def test_two_runs_are_compared_on_ratios_and_reversed_pairs():
     from mcillum.validation.results import Placement, Ratio

@@ -74,17 +74,18 @@ def budget_spp(models: dict, path_spp) -> list[int]:
     per_spp = max(path.per_spp_s, 1e-12)
 
     def scale_for(seconds: float, spp: int) -> float:
-        # (the factor on `spp` that makes path's time at it ``seconds``)
-        return (seconds - path.fixed_s) / per_spp / spp
+        # (the factor on `spp` that makes path's time at it ``seconds``,
+        # as costs.seconds_at reads path's model, which sets the budgets)
+        return (seconds - max(path.fixed_s, 0.0)) / per_spp / spp
 
     worst = max(max(m.fixed_s, 0.0) for m in models.values())
     largest = scale_for(worst / costs.MAX_OVERHEAD, max(path_spp))
     # (path's spp defines the budgets: it renders them as they are)
-    slowest = max((max(m.fixed_s, 0.0) + MIN_SPP * m.per_spp_s
+    slowest = max((costs.seconds_at(m, MIN_SPP)
                    for n, m in models.items() if n != REFERENCE), default=0.0)
     fit = scale_for(slowest, max(path_spp))
     smallest = scale_for(MIN_BUDGET, min(path_spp))
-    learner = max((max(m.fixed_s, 0.0) + MIN_LEARNER_SPP * m.per_spp_s
+    learner = max((costs.seconds_at(m, MIN_LEARNER_SPP)
                    for n, m in models.items() if registry.facts(n).learns), default=0.0)
     trained = scale_for(learner, max(path_spp))
     scale = min(max(1.0, largest, fit, smallest, trained), MAX_SCALE)
