@@ -387,7 +387,11 @@ def test_an_error_tail_without_fireflies_is_bounded():
     tail = tails.error_tail(1 + 0.1 * rng.standard_normal((4, 16, 16, 3)), r)
     assert (tail.fireflies, tail.share, tail.shape, tail.unbounded) == (0, 0.0, None, False)
     heavy = tails.ErrorTail(fireflies=120, share=0.6, shape=0.71, unbounded=True)
-    assert "120 fireflies carry 60 %" in heavy.text() and "0.71" in heavy.text()
+    assert "120 fireflies carry 60 %" in heavy.text() and "0.71 (≥ 0.5: no finite" in heavy.text()
+    light = tails.ErrorTail(fireflies=120, share=0.6, shape=0.2, unbounded=False)
+    assert "0.20 (< 0.5: a finite variance)" in light.text()
+    few = tails.ErrorTail(fireflies=3, share=0.6, shape=None, unbounded=True)
+    assert "too few (< 20)" in few.text()
 
 
 def test_a_relmse_with_a_lower_bound_only_reads_so():

@@ -144,10 +144,14 @@ class ErrorTail:
     unbounded: bool             # K renders cannot bound the mean error from above
 
     def text(self) -> str:
-        """"fireflies (N) carry S % of its squared error, their tail's shape k"."""
-        shape = (f", their tail's shape {self.shape:.2f} (≥ {TAIL_SHAPE:g}: no finite "
-                 "variance)" if self.shape is not None else
-                 f", too few (< {TAIL_FIT_EVENTS}) to give their tail's shape")
+        """In words: 'N fireflies carry S % of its squared error, their tail's
+        shape k (≥ 0.5: no finite variance)'."""
+        if self.shape is None:
+            shape = f", too few (< {TAIL_FIT_EVENTS}) to give their tail's shape"
+        else:
+            heavy = self.shape >= TAIL_SHAPE
+            shape = (f", their tail's shape {self.shape:.2f} ({'≥' if heavy else '<'} "
+                     f"{TAIL_SHAPE:g}: {'no' if heavy else 'a'} finite variance)")
         return (f"{self.fireflies} fireflies carry {100 * self.share:.0f} % of its squared "
                 f"error{shape}")
 
