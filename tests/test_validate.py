@@ -601,6 +601,33 @@ def _widened(value: float, ci, renders: int, level: float = 0.999):
 
 
 @pytest.mark.slow
+def test_a_users_integrator_whose_error_renders_cannot_bound_is_read_as_a_bound(llvm, tmp_path):
+    """A user's plugin file: `path` with every sample weighted by a Pareto W
+    of mean 1 and no finite variance (user_code.SPIKY_PATH). It is unbiased,
+    but its error rests on rare samples: the speed stage reads it
+    heavy-tailed (stats/tails.py: error_tail), its efficiency an upper bound
+    ([0, its upper end]) and its relMSE at the largest budget a lower bound
+    ([low, ∞)), and says so in a note; `path` beside it keeps its two-sided
+    figures."""
+    from mcillum import plugins
+    from user_code import SPIKY_PATH
+    plugin = tmp_path / "code" / "spiky_path.py"
+    plugin.parent.mkdir()
+    plugin.write_text(SPIKY_PATH)
+    plugins.load(str(plugin), "llvm_ad_rgb")
+    speed = _speed_stage(tmp_path, "out", ["spiky_path", "path"])
+    spiky, path = speed.efficiency_vs_path["spiky_path"], speed.efficiency_vs_path["path"]
+    assert spiky.kind == "heavy_tailed" and spiky.ci.low == 0.0, spiky
+    assert spiky.ratio <= spiky.ci.high < np.inf, spiky
+    top = speed.budgets[-1].estimators
+    assert top["spiky_path"].relmse_ci.high == np.inf
+    assert path.kind == "unbiased" and 0 < path.ci.low < 1 < path.ci.high, path
+    assert np.isfinite(top["path"].relmse_ci.high)
+    assert any(n.startswith("spiky_path at") and "efficiency is an upper bound" in n
+               for n in speed.notes), speed.notes
+
+
+@pytest.mark.slow
 def test_an_efficiency_whose_truth_is_known_is_read_right(llvm, tmp_path):
     """`path` rendering every image twice and keeping one, from a user's
     plugin file: at spp s its time is twice path's, fixed cost included, so

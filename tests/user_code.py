@@ -65,6 +65,29 @@ class TwicePath(mi.SamplingIntegrator):
 mi.register_integrator("twice_path", lambda props: TwicePath(props))
 '''
 
+#: Mitsuba's path tracer with each sample weighted by W, Pareto of mean 1 and
+#: shape 1.5: unbiased, but W has no finite variance, so rare samples carry
+#: the error and a mean over renders misses them (test_validate.py).
+SPIKY_PATH = '''
+import drjit as dr
+import mitsuba as mi
+
+
+class SpikyPath(mi.SamplingIntegrator):
+    def __init__(self, props):
+        super().__init__(props)
+        self.inner = mi.load_dict({"type": "path"})
+
+    def sample(self, scene, sampler, ray, medium=None, active=True):
+        spec, valid, aovs = self.inner.sample(scene, sampler, ray, medium, active)
+        u = sampler.next_1d(active)
+        a = 1.5                                 # P(W > w) = (x_m / w)^a, x_m = (a - 1)/a
+        return spec * ((a - 1) / a) * dr.power(1 - u, -1 / a), valid, aovs
+
+
+mi.register_integrator("spiky_path", lambda props: SpikyPath(props))
+'''
+
 #: Appended to :data:`MY_INTEGRATOR`: a user's quadrature, derived from
 #: mcillum's bayesian_hemisphere with every direction's weight 5 % low (biased
 #: by design, and by 5 % more); and their direct-light integrator, 5 % dark,

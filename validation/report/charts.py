@@ -24,6 +24,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402  (after choosing the headless backend)
 import matplotlib.patches  # noqa: E402
 import matplotlib.ticker  # noqa: E402
+import matplotlib.transforms  # noqa: E402
 
 
 def palette(results: Results) -> dict[str, str]:
@@ -265,7 +266,9 @@ def error_spread(scene: SceneResult, colours: dict) -> str:
 
 def efficiency_summary(results: Results, colours: dict) -> str:
     """Efficiency of each estimator relative to `path` at each scene's largest
-    equal-time budget (speed stage), with 95 % intervals, log bars."""
+    equal-time budget (speed stage), with 95 % intervals, log bars; a bound
+    hatched at the bound, and a "?" where a heavy-tailed figure has no bound
+    either way."""
     reference = registry.REFERENCE
     scenes = [s for s in results.scenes if s.speed is not None]
     names = [n for n in dict.fromkeys(n for s in scenes for n in s.speed.efficiency_vs_path)
@@ -273,19 +276,26 @@ def efficiency_summary(results: Results, colours: dict) -> str:
     fig, ax = plt.subplots(figsize=(max(7.5, 2.0 + 0.75 * len(scenes)), 3.9))
     width = 0.8 / max(len(names), 1)
     hatch = {"reference_limited": "//", "biased": "xx", "heavy_tailed": "\\\\"}
+    foot = matplotlib.transforms.blended_transform_factory(ax.transData, ax.transAxes)
     for j, name in enumerate(names):
         ratio, low, high, kinds = [], [], [], []
-        for s in scenes:
+        x = np.arange(len(scenes)) + (j - (len(names) - 1) / 2) * width
+        for s, x_ in zip(scenes, x):
             r = s.speed.efficiency_vs_path.get(name)
-            bound = r is not None and not np.isfinite(r.ci.high)
-            upper = r is not None and r.kind == "heavy_tailed" and np.isfinite(r.ci.high)
+            heavy = r is not None and r.kind == "heavy_tailed"
+            bound = r is not None and not np.isfinite(r.ci.high) and not heavy
+            upper = heavy and np.isfinite(r.ci.high)
+            if heavy and not upper:
+                # (heavy-tailed with no upper end either: nothing to draw)
+                ax.text(x_, 0.01, "?", transform=foot, color=colours[name], fontsize=8,
+                        ha="center", va="bottom", fontweight="bold")
+                r = None
             # a bound (lower or upper) is drawn at its bound, with no interval
             ratio.append((r.ci.low if bound else r.ci.high if upper else r.ratio)
                          if r else np.nan)
             low.append(0.0 if bound or upper or not r else r.ratio - r.ci.low)
             high.append(0.0 if bound or upper or not r else r.ci.high - r.ratio)
             kinds.append("reference_limited" if bound else (r.kind if r else "unbiased"))
-        x = np.arange(len(scenes)) + (j - (len(names) - 1) / 2) * width
         bars = ax.bar(x, ratio, width, color=colours[name], label=name,
                       yerr=[np.maximum(low, 0), np.maximum(high, 0)], capsize=2,
                       error_kw={"lw": 0.8})
@@ -300,7 +310,7 @@ def efficiency_summary(results: Results, colours: dict) -> str:
     ax.set_ylabel("efficiency / efficiency of path")
     ax.set_title("Efficiency 1/(relMSE·time) relative to Mitsuba's path, at equal time\n"
                  "(hatched //: a lower bound only; \\: an upper bound only, heavy-tailed; "
-                 "xx: biased by design)",
+                 "?: heavy-tailed, no bound; xx: biased by design)",
                  fontsize=9)
     ax.grid(True, axis="y", which="both", alpha=0.3)
     # (plain swatches: a hatched first bar would hatch its estimator's key;
