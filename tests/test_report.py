@@ -541,3 +541,44 @@ def test_a_flat_reference_is_shown_grey_with_room_for_its_noise():
     lit[:3, :3] = 9.0                                  # a light: 3.5 % of the pixels
     assert images.exposure_for(lit) == np.round(-np.log2(9.0) * 2) / 2
     assert images.exposure_for(np.zeros((4, 4, 3))) == 0.0
+
+
+def test_a_heavy_tailed_figure_reads_as_a_bound_everywhere(tmp_path):
+    """A heavy-tailed efficiency (kind heavy_tailed, interval [0, upper end])
+    and relMSE ([low, ∞)), and one with no bound either way: results.json
+    holds them as the schema says, they read back, the summary and the page
+    show "≤ x (heavy-tailed)", "unbounded either way" and "[low, ∞)", the
+    summary chart names its "?", and the accuracy-vs-time chart draws
+    them."""
+    import jsonschema
+    from mcillum.validation.results import Interval
+    res = synthetic_results()
+    speed = res.scenes[0].speed
+    run = speed.budgets[-1].estimators["uniform_hemisphere"]
+    run.relmse_ci = Interval(run.relmse_ci.low, math.inf)
+    r = speed.efficiency_vs_path["uniform_hemisphere"]
+    speed.efficiency_vs_path["uniform_hemisphere"] = Ratio(
+        ratio=r.ratio, ci=Interval(0.0, r.ci.high), kind="heavy_tailed")
+    r = res.scenes[1].speed.efficiency_vs_path["cosine_hemisphere"]
+    res.scenes[1].speed.efficiency_vs_path["cosine_hemisphere"] = Ratio(
+        ratio=r.ratio, ci=Interval(0.0, math.inf), kind="heavy_tailed")
+    for s in res.scenes:                    # (the synthetic runs leave it unset)
+        for e in s.estimators:
+            for x in e.runs:
+                x.firefly_fraction = 0.0 if x.firefly_fraction is None else x.firefly_fraction
+    run_dir = fake_run_dir(tmp_path, res)
+    jsonschema.validate(json.loads((run_dir / "results.json").read_text()),
+                        json.load(open(results.SCHEMA_FILE)))
+    back = results.load(str(run_dir))
+    bound = back.scenes[0].speed.efficiency_vs_path["uniform_hemisphere"]
+    assert results.ratio_text(bound) == f"≤ {bound.ci.high:.3g} (heavy-tailed)"
+    assert "unbounded either way (heavy-tailed)" in results.ratio_text(
+        back.scenes[1].speed.efficiency_vs_path["cosine_hemisphere"])
+    low = back.scenes[0].speed.budgets[-1].estimators["uniform_hemisphere"]
+    assert results.relmse_text(low).endswith(f"[{low.relmse_ci.low:.3g}, ∞)")
+    summary = "\n".join(results.speed_summary(back.scenes[0].speed))
+    assert "(heavy-tailed)" in summary and "∞)" in summary and "heavy-tailed: rare" in summary
+    page = open(report.build(str(run_dir)), encoding="utf-8").read()
+    assert "(heavy-tailed)" in page and "∞)" in page
+    assert "?: heavy-tailed, no bound" in charts.efficiency_summary(back, COLOURS)
+    assert "<svg" in charts.error_vs_time(back.scenes[0], COLOURS)

@@ -81,7 +81,8 @@ def test_correct_estimators_pass_and_outputs_are_complete(llvm, tiny_profile, tm
     for budget in speed["budgets"]:
         for run in budget["estimators"].values():
             assert len(run["wall_seconds"]) == len(run["relmse_per_render"]) == 4
-            assert run["relmse_ci"][0] <= run["relmse"] <= run["relmse_ci"][1]
+            high = run["relmse_ci"][1]          # (null: a lower bound only, heavy-tailed)
+            assert run["relmse_ci"][0] <= run["relmse"] <= (np.inf if high is None else high)
     assert_ranking_follows_the_intervals(speed)
     assert (out / "images" / "cap_plane" / "display" / "path.exr").is_file()
     broken = json.loads(json.dumps(data))
@@ -607,8 +608,9 @@ def test_a_users_integrator_whose_error_renders_cannot_bound_is_read_as_a_bound(
     but its error rests on rare samples: the speed stage reads it
     heavy-tailed (stats/tails.py: error_tail), its efficiency an upper bound
     ([0, its upper end]) and its relMSE at the largest budget a lower bound
-    ([low, ∞)), and says so in a note; `path` beside it keeps its two-sided
-    figures."""
+    ([low, ∞)), and says so in a note (where K renders do not even resolve
+    its net relMSE, no upper end either); `path` beside it keeps its
+    two-sided figures."""
     from mcillum import plugins
     from user_code import SPIKY_PATH
     plugin = tmp_path / "code" / "spiky_path.py"
@@ -618,7 +620,7 @@ def test_a_users_integrator_whose_error_renders_cannot_bound_is_read_as_a_bound(
     speed = _speed_stage(tmp_path, "out", ["spiky_path", "path"])
     spiky, path = speed.efficiency_vs_path["spiky_path"], speed.efficiency_vs_path["path"]
     assert spiky.kind == "heavy_tailed" and spiky.ci.low == 0.0, spiky
-    assert spiky.ratio <= spiky.ci.high < np.inf, spiky
+    assert spiky.ratio <= spiky.ci.high, spiky
     top = speed.budgets[-1].estimators
     assert top["spiky_path"].relmse_ci.high == np.inf
     assert path.kind == "unbiased" and 0 < path.ci.low < 1 < path.ci.high, path
@@ -635,11 +637,12 @@ def test_an_efficiency_whose_truth_is_known_is_read_right(llvm, tmp_path):
     (a/s_path + b)/(a/s_twice + b) with path's cost model (a, b). The speed
     stage reads it within 15 % (its own timing noise: one slow render in 8
     moves it by 5 %, docs/measurements.md 2026-12-03); its interval, taken
-    to 99.9 % (:func:`_widened`), covers it, so that an honest 95 % interval
-    fails this test about once in a thousand runs rather than once in
-    twenty; and the 95 % interval tells it apart from the readings a mistake
-    in the timing would give: the thrown render not counted (2×) or counted
-    twice (½×)."""
+    to 99.9 % (:func:`_widened`), covers it: the 95 % one covered 8 of 10
+    runs, partly because the truth extrapolates the pilot's line (1-3 % off
+    at 30 spp, docs/measurements.md 2026-12-05), and a test that fails one
+    run in ten is no test for CI. The 95 % interval still tells the reading
+    apart from those a mistake in the timing would give: the thrown render
+    not counted (2×) or counted twice (½×)."""
     from mcillum import plugins
     from user_code import TWICE_PATH
     plugin = tmp_path / "code" / "twice_path.py"

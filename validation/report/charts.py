@@ -155,13 +155,16 @@ def error_vs_time(scene: SceneResult, colours: dict) -> str:
                           for t_, r in zip(t, runs)]).T
         e = np.array([r.relmse for r in runs])
         # a relMSE with a lower bound only (heavy-tailed, stats/tails.py):
-        # an arrow up from it, a factor 2 long
+        # its lower bar, and an arrow up from the point, a factor 2 long
         bound = np.array([not np.isfinite(r.relmse_ci.high) for r in runs])
         e_err = np.array([[r.relmse - r.relmse_ci.low,
-                           r.relmse if b else r.relmse_ci.high - r.relmse]
+                           0.0 if b else r.relmse_ci.high - r.relmse]
                           for r, b in zip(runs, bound)]).T
         ax.errorbar(t, e, yerr=np.maximum(e_err, 0), xerr=np.maximum(t_err, 0), fmt="o-",
-                    color=colours[name], label=name, ms=4, capsize=2, lw=1.2, lolims=bound)
+                    color=colours[name], label=name, ms=4, capsize=2, lw=1.2)
+        if bound.any():
+            ax.errorbar(t[bound], e[bound], yerr=[np.zeros(bound.sum()), e[bound]],
+                        fmt="none", ecolor=colours[name], lw=1.2, lolims=True)
     for b in sp.budgets:
         ax.axvline(b.seconds * 1e3, color="#999999", ls=":", lw=1)
     share = sp.budgets[-1].reference_relmse

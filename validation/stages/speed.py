@@ -221,9 +221,11 @@ def _kind(name: str, run: BudgetRun, share: costs.Share, tail: tails.ErrorTail) 
     """What the estimator's efficiency figure means (results.KINDS)."""
     if not registry.facts(name).unbiased:
         return "biased"
-    if run.relmse < metrics.RESOLVED * share.value:
-        return "reference_limited"
-    return "heavy_tailed" if tail.unbounded and name != REFERENCE else "unbiased"
+    # (before reference_limited: that figure's lower bound needs the very
+    # upper end of the error that a heavy tail takes away)
+    if tail.unbounded and name != REFERENCE:
+        return "heavy_tailed"
+    return "reference_limited" if run.relmse < metrics.RESOLVED * share.value else "unbiased"
 
 
 def _load(ctx) -> tuple[float | None, int, bool]:
@@ -285,7 +287,7 @@ def _budget_run(ctx, name: str, stack: Stack, budget: float, r: np.ndarray,
         if top:         # (where efficiency is read)
             then = (", and its efficiency is an upper bound" if name != REFERENCE else
                     ", and every efficiency ratio, which divides by its efficiency, may "
-                    "read low")
+                    "read low: their upper ends do not hold")
         ctx.notes.append(f"{name} at {budget * 1e3:.1f} ms: {tail.text()}: its K renders "
                          "cannot bound its mean error, so its relMSE has a lower bound "
                          f"only{then}")

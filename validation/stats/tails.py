@@ -26,7 +26,8 @@ trusts a sample variance that rests on a few of them. Definitions (used by
   fireflies carry at least ``TAIL_ERROR_SHARE`` of the renders' squared
   relative error, and either they are fewer than ``TAIL_FIT_EVENTS`` or the
   generalized Pareto shape fitted to their errors (maximum likelihood over
-  the excess above the smallest) is at least ``TAIL_SHAPE``. A tail of
+  the excess above the smallest; a fit that fails counts) is at least
+  ``TAIL_SHAPE``. A tail of
   shape ≥ ½ has no finite variance, so a mean over renders has no normal
   limit and the Student-t interval misses the rare errors it has not seen
   yet (tests/test_costs.py measures how often).
@@ -140,7 +141,10 @@ class ErrorTail:
 
     fireflies: int
     share: float                # of the renders' summed squared relative error
-    shape: float | None         # generalized Pareto shape of their errors (None: too few)
+    #: generalized Pareto shape of their errors (None: fewer than
+    #: TAIL_FIT_EVENTS, or a share below TAIL_ERROR_SHARE, not fitted; NaN:
+    #: the fit failed, read as heavy)
+    shape: float | None
     unbounded: bool             # K renders cannot bound the mean error from above
 
     def text(self) -> str:
@@ -148,6 +152,8 @@ class ErrorTail:
         shape k (≥ 0.5: no finite variance)'."""
         if self.shape is None:
             shape = f", too few (< {TAIL_FIT_EVENTS}) to give their tail's shape"
+        elif np.isnan(self.shape):
+            shape = ", their tail's shape not to be fitted (no spread)"
         else:
             heavy = self.shape >= TAIL_SHAPE
             shape = (f", their tail's shape {self.shape:.2f} ({'≥' if heavy else '<'} "
@@ -169,10 +175,13 @@ def error_tail(renders: np.ndarray, reference: np.ndarray) -> ErrorTail:
     share = float(e[fire].sum()) / total if total > 0 else 0.0
     count = int(fire.sum())
     shape = None
-    if count >= TAIL_FIT_EVENTS:
+    if count >= TAIL_FIT_EVENTS and share >= TAIL_ERROR_SHARE:
         v = e[fire]
-        shape = float(stats.genpareto.fit(v - v.min(), floc=0)[0])
-    unbounded = share >= TAIL_ERROR_SHARE and (shape is None or shape >= TAIL_SHAPE)
+        try:
+            shape = float(stats.genpareto.fit(v - v.min(), floc=0)[0])
+        except (stats.FitError, ValueError, RuntimeError):
+            shape = float("nan")        # (ties, no spread: no shape to read)
+    unbounded = share >= TAIL_ERROR_SHARE and (shape is None or not shape < TAIL_SHAPE)
     return ErrorTail(fireflies=count, share=share, shape=shape, unbounded=unbounded)
 
 
