@@ -95,7 +95,7 @@ def synthetic_results(scenes=("alpha", "beta"), ladder=(4, 16, 64)) -> Results:
                              median_seconds=1e-4 * spp, seconds=[1e-4 * spp] * 8,
                              samples_per_second=1e6,
                              efficiency=(i + 1) * spp / (0.5 * 1e-4 * spp),
-                             reference_relmse=0.0) for spp in ladder]
+                             reference_relmse=0.0, firefly_fraction=0.0) for spp in ladder]
             passed = name != "uniform_hemisphere"
             # one inconclusive check: cosine in the second scene
             outcome = ("fail" if not passed else
@@ -562,10 +562,6 @@ def test_a_heavy_tailed_figure_reads_as_a_bound_everywhere(tmp_path):
     r = res.scenes[1].speed.efficiency_vs_path["cosine_hemisphere"]
     res.scenes[1].speed.efficiency_vs_path["cosine_hemisphere"] = Ratio(
         ratio=r.ratio, ci=Interval(0.0, math.inf), kind="heavy_tailed")
-    for s in res.scenes:                    # (the synthetic runs leave it unset)
-        for e in s.estimators:
-            for x in e.runs:
-                x.firefly_fraction = 0.0 if x.firefly_fraction is None else x.firefly_fraction
     run_dir = fake_run_dir(tmp_path, res)
     jsonschema.validate(json.loads((run_dir / "results.json").read_text()),
                         json.load(open(results.SCHEMA_FILE)))
