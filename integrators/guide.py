@@ -19,6 +19,7 @@ from collections import deque
 import drjit as dr
 import mitsuba as mi
 import numpy as np
+from scipy import sparse
 
 
 def take(array, index):
@@ -158,21 +159,22 @@ class Guide:
         return int(np.sum(self.trained & (self.child == 0)))
 
     @classmethod
-    def learn(cls, res: int, voxel, cell, li, ld, threshold: float, refine: float) -> Guide:
-        """The tree and pmfs of the records (:meth:`Records.learned`): per
-        record its voxel, its direction's cell of the res² square, the
-        radiance ``li`` it saw arrive indirectly and the emission ``ld`` its
-        direction hit, MIS-weighted.
+    def learn(cls, tally: Tally, threshold: float, refine: float) -> Guide:
+        """The tree and pmfs of the training records summed in ``tally``
+        (:class:`Tally`): per voxel and cell of the res² square, the
+        records' count, the radiance L_i they saw arrive indirectly (its sum
+        and sum of squares) and the emission L_d their directions hit,
+        MIS-weighted.
 
         The tree splits the grid breadth first (in voxel units) while a
         node holds more than ``threshold``·√R of the R records (so that, as
         in Müller et al., leaves and the records per leaf both grow as √R:
         more records buy spatial and directional resolution alike); a split
-        never divides a voxel. A node with at least MIN_TRAINED records
-        learns its pmf from them (:func:`refined_means`: per cell the mean
-        L_i of a quadtree cell that is refined where light concentrates);
-        one with fewer keeps its parent's (uniform at the root: cosine
-        sampling, not trained).
+        never divides a voxel, so the voxels' sums are all it reads. A node
+        with at least MIN_TRAINED records learns its pmf from them
+        (:func:`refined_means`: per cell the mean L_i of a quadtree cell
+        that is refined where light concentrates); one with fewer keeps its
+        parent's (uniform at the root: cosine sampling, not trained).
         Every cell spans the same cosine-weighted solid angle, so a cell's
         mean L_i is its share of ∫ L_i cos θ, up to its within-cell
         variation, and far less noisy than splatting L_i/p, which one rare
@@ -183,18 +185,22 @@ class Guide:
         samples well).
 
         The image is unbiased whatever is learned."""
+        res = tally.res
         g = cls(res)
-        if not np.any(li > 0):          # (no light arrived: no node would learn)
+        if not np.any(tally.sum > 0):   # (no light arrived: no node would learn)
             return g
         nb = res * res
-        g._grow(np.bincount(voxel, minlength=GRID ** 3), threshold * np.sqrt(len(voxel)))
+        counts = np.zeros(GRID ** 3)
+        counts[tally.voxels] = tally.count.sum(axis=1)
+        g._grow(counts, threshold * np.sqrt(tally.records))
         nodes = len(g.child)
-        node = g.voxel_node[voxel]
-        key = node * nb + cell
-        hits = np.bincount(key, minlength=nodes * nb).reshape(nodes, nb).astype(float)
-        total = np.bincount(key, weights=li, minlength=nodes * nb).reshape(nodes, nb)
-        squares = np.bincount(key, weights=li * li, minlength=nodes * nb).reshape(nodes, nb)
-        direct = np.bincount(node, weights=ld, minlength=nodes)
+        # (a voxel's rows summed into its leaf's: a sparse (nodes × voxels) sum)
+        node = g.voxel_node[tally.voxels]
+        into = sparse.csr_matrix((np.ones(len(node)), (node, np.arange(len(node)))),
+                                 shape=(nodes, len(node)))
+        hits, total, squares = (np.asarray(into @ a) for a in
+                                (tally.count, tally.sum, tally.square))
+        direct = np.bincount(node, weights=tally.direct, minlength=nodes)
         for k in reversed(range(nodes)):     # (an inner node's sums are its children's)
             first = int(g.child[k])
             if first:
@@ -383,6 +389,54 @@ def _pyramid(a: np.ndarray) -> dict[int, np.ndarray]:
         out[k] = out[2 * k].reshape(len(a), k, 2, k, 2).sum(axis=(2, 4))
     return out
 
+
+
+class Tally:
+    """Training records summed per voxel and cell of the res² square: all
+    that :meth:`Guide.learn` reads (its tree never splits a voxel). A
+    render's passes add their records to one tally (:meth:`add`) and learn
+    from it, rather than pooling the records and reading them all again at
+    every pass: on the Cornell box at 16² × 15 360 training spp (14 M
+    records) pooling cost 5-9 s a render, against 0.1-0.3 s of rendering
+    per pass. 24 bytes per voxel a record fell in and cell (6 000 voxels of
+    a room at res 32: 150 MB)."""
+
+    def __init__(self, res: int):
+        self.res = res
+        self.row = np.full(GRID ** 3, -1, np.int64)   # each voxel's row; -1: none yet
+        self.voxels = np.zeros(0, np.int64)           # the voxel of each row
+        self.records = 0
+        self._sums = np.zeros((3, 0, res * res))      # (count, Σ L_i, Σ L_i²), rows to spare
+        self._direct = np.zeros(0)                    # Σ L_d per row
+
+    # (per voxel and cell, a view of the rows in use)
+    count = property(lambda self: self._sums[0, :len(self.voxels)])
+    sum = property(lambda self: self._sums[1, :len(self.voxels)])
+    square = property(lambda self: self._sums[2, :len(self.voxels)])
+    direct = property(lambda self: self._direct[:len(self.voxels)])
+
+    def add(self, voxel, cell, li, ld) -> None:
+        """Add records (:meth:`Records.learned`): per record its voxel, its
+        direction's cell, L_i and L_d."""
+        if not len(voxel):
+            return
+        seen = np.flatnonzero(np.bincount(voxel, minlength=GRID ** 3))
+        new = seen[self.row[seen] < 0]
+        if len(new):
+            self.row[new] = len(self.voxels) + np.arange(len(new))
+            self.voxels = np.concatenate([self.voxels, new])
+            if len(self.voxels) > self._sums.shape[1]:      # (grown by doubling)
+                rows = max(len(self.voxels), 2 * self._sums.shape[1])
+                grown = np.zeros((3, rows, self._sums.shape[2]))
+                grown[:, :self._sums.shape[1]] = self._sums
+                self._sums, self._direct = grown, np.resize(self._direct, rows)
+                self._direct[len(self.voxels) - len(new):] = 0
+        nb, rows = self.res * self.res, self.row[voxel]
+        key, size = rows * nb + cell, len(self.voxels) * nb
+        for a, w in ((self.count, None), (self.sum, li), (self.square, li * li)):
+            a += np.bincount(key, weights=w, minlength=size).reshape(-1, nb)
+        self.direct[:] += np.bincount(rows, weights=ld, minlength=len(self.voxels))
+        self.records += len(voxel)
 
 class Records:
     """What the training paths of one render leave: per vertex its voxel,

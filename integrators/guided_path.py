@@ -7,15 +7,14 @@ from __future__ import annotations
 
 import drjit as dr
 import mitsuba as mi
-import numpy as np
 
 from . import registry
 from .bsdf_sampling import sample_bsdf_direction
 from .emitter_sampling import emitter_direction_pdf, sample_emitter_direction
 from .estimator import IlluminationEstimator, over_pdf
 from .guide import (MAX_RECORDS, PASSES, PAYS_BELOW, SLOTS_PER_CELL, TRAIN_DEPTH,
-                    TRAIN_FRACTION, Guide, Records, grid_of, pass_seed, take, training_passes,
-                    voxel_of)
+                    TRAIN_FRACTION, Guide, Records, Tally, grid_of, pass_seed, take,
+                    training_passes, voxel_of)
 
 # ----------------------------- Strategy ---------------------------------
 # The learned part is a piecewise-constant density on the unit square, warped
@@ -270,17 +269,15 @@ class GuidedPathIntegrator(IlluminationEstimator):
         self._grid = grid_of(scene.bbox())
         pixels = int(dr.prod(sensor_.film().crop_size()))
         depth = int(min(self.max_depth, TRAIN_DEPTH))
-        records = []                        # (voxel, cell, L_i, L_d) of every pass so far
+        tally = Tally(self.directional_res)   # the records of every pass so far
         self._images = []                   # (spp, image) of every training render
         try:
             for i, n in enumerate(training_passes(spp, self.train_fraction,
                                                   self.train_passes)):
-                records.append(self._train(scene, sensor, pass_seed(seed, i), n, pixels, depth))
-                pooled = [np.concatenate(c) for c in zip(*records)]
-                guide = Guide.learn(self.directional_res, *pooled, self.spatial_threshold,
-                                    self.directional_threshold)
+                self._train(scene, sensor, pass_seed(seed, i), n, pixels, depth, tally)
+                guide = Guide.learn(tally, self.spatial_threshold, self.directional_threshold)
                 ratio = guide.variance_ratio(self.bsdf_fraction)
-                self.training.append({"spp": n, "records": len(pooled[0]),
+                self.training.append({"spp": n, "records": tally.records,
                                       "leaves": guide.leaves,
                                       "trained_leaves": guide.trained_leaves,
                                       "bsdf_share": guide.bsdf_share(self.bsdf_fraction),
@@ -314,21 +311,20 @@ class GuidedPathIntegrator(IlluminationEstimator):
             self._records, self.records_paths, self._guide = None, False, None
             self._images = []
 
-    def _train(self, scene, sensor, seed, spp, pixels, depth):
+    def _train(self, scene, sensor, seed, spp, pixels, depth, tally):
         """One training pass of ``spp`` (in pieces of at most MAX_RECORDS
-        vertices), sampling with the guide learned so far: (voxel, cell,
-        L_i, L_d) of its vertices (:meth:`Records.learned`). Every record estimates L_i
-        whatever density drew it, so the passes' records are pooled."""
+        vertices), sampling with the guide learned so far; its vertices'
+        records (:meth:`Records.learned`) are added to ``tally``. Every
+        record estimates L_i whatever density drew it, so the passes'
+        records are pooled."""
         pieces = max(1, -(-pixels * spp * depth // MAX_RECORDS))
         per = [spp // pieces + (k < spp % pieces) for k in range(pieces)]
-        rows = []
         for k, n in enumerate(p for p in per if p):
             self._records, self.records_paths = Records(pixels * n, depth), True
             self._images.append(
                 (n, super().render(scene, sensor, pass_seed(seed, 1000 + k), n, True, True)))
-            rows.append(self._records.learned())
+            tally.add(*self._records.learned())
         self.records_paths = False
-        return tuple(np.concatenate(c) for c in zip(*rows))
 
     # ------------------------- Training records ---------------------------
 

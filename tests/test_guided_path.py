@@ -167,6 +167,34 @@ def test_bad_parameters_are_refused(llvm, params, message):
 
 # ------------------------------- Learning -----------------------------------
 
+def test_records_added_in_pieces_learn_what_their_sums_say(llvm):
+    """guide.Tally: records added in three pieces (new voxels in each, so
+    its rows grow) learn the same tree as all at once, and every leaf's
+    per-cell count, Σ L_i and Σ L_i² are its records' own (summed here
+    from the records by the leaf each voxel lands in)."""
+    g, res, n = guide(), 8, 60_000
+    rng = np.random.default_rng(7)
+    voxel = np.concatenate([rng.integers(100, 140, n // 2), rng.integers(0, g.GRID ** 3, n // 2)])
+    cell = rng.integers(0, res * res, n)
+    li = rng.exponential(1.0, n) * (rng.random(n) < 0.5)
+    ld = rng.exponential(1.0, n) * (rng.random(n) < 0.2)
+    whole, pieces = g.Tally(res), g.Tally(res)
+    whole.add(voxel, cell, li, ld)
+    for a, b in ((0, n // 4), (n // 4, n // 2), (n // 2, n)):
+        pieces.add(voxel[a:b], cell[a:b], li[a:b], ld[a:b])
+    assert whole.records == pieces.records == n
+    one, three = (g.Guide.learn(t, 2.0, 0.01) for t in (whole, pieces))
+    assert one.leaves == three.leaves > 8
+    assert np.array_equal(one.voxel_node, three.voxel_node)
+    assert np.allclose(one.pmf, three.pmf, rtol=1e-12, atol=0)
+    leaf = three.voxel_node[voxel]
+    for got, w in ((three.counts, None), (three.sums, li), (three.squares, li * li)):
+        want = np.bincount(leaf * res * res + cell, weights=w,
+                           minlength=len(three.child) * res * res).reshape(-1, res * res)
+        leaves = three.child == 0
+        assert np.allclose(got[leaves], want[leaves], rtol=1e-12, atol=1e-12)
+
+
 def pixel_variance(scene, integrator, spp, seeds=12):
     images = batch(scene, integrator, spp, seeds)[..., :3]
     return float(np.mean(images.var(axis=0, ddof=1))), float(images.mean())
