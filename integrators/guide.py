@@ -187,20 +187,14 @@ class Guide:
         The image is unbiased whatever is learned."""
         res = tally.res
         g = cls(res)
-        if not np.any(tally.sum > 0):   # (no light arrived: no node would learn)
+        if not tally.records:
             return g
         nb = res * res
-        counts = np.zeros(GRID ** 3)
-        counts[tally.voxels] = tally.count.sum(axis=1)
-        g._grow(counts, threshold * np.sqrt(tally.records))
+        g._grow(tally.voxel_counts, threshold * np.sqrt(tally.records))
         nodes = len(g.child)
-        # (a voxel's rows summed into its leaf's: a sparse (nodes × voxels) sum)
-        node = g.voxel_node[tally.voxels]
-        into = sparse.csr_matrix((np.ones(len(node)), (node, np.arange(len(node)))),
-                                 shape=(nodes, len(node)))
-        hits, total, squares = (np.asarray(into @ a) for a in
-                                (tally.count, tally.sum, tally.square))
-        direct = np.bincount(node, weights=tally.direct, minlength=nodes)
+        hits, total, squares, direct = tally.node_sums(g.voxel_node, nodes)
+        if not np.any(total > 0):       # (no light arrived: no node would learn)
+            return cls(res)
         for k in reversed(range(nodes)):     # (an inner node's sums are its children's)
             first = int(g.child[k])
             if first:
@@ -392,51 +386,90 @@ def _pyramid(a: np.ndarray) -> dict[int, np.ndarray]:
 
 
 class Tally:
-    """Training records summed per voxel and cell of the res² square: all
-    that :meth:`Guide.learn` reads (its tree never splits a voxel). A
-    render's passes add their records to one tally (:meth:`add`) and learn
-    from it, rather than pooling the records and reading them all again at
-    every pass: on the Cornell box at 16² × 15 360 training spp (14 M
-    records) pooling cost 5-9 s a render, against 0.1-0.3 s of rendering
-    per pass. 24 bytes per voxel a record fell in and cell (6 000 voxels of
-    a room at res 32: 150 MB)."""
+    """A render's training records, as :meth:`Guide.learn` reads them: per
+    voxel the records' count (which grows the tree) and, per node of a
+    tree and cell of the res² square, their count, Σ L_i and Σ L_i², and
+    per node Σ L_d (:meth:`node_sums`). Its tree never splits a voxel, so
+    records summed per voxel and cell serve any tree: the records are kept
+    as they come while they are fewer than the voxels' cells, and folded
+    into such sums once they outnumber them, so that a long training's
+    memory stays bounded (24 bytes per cell of a voxel a record fell in:
+    6 000 voxels of a room at res 32, 150 MB; 32 bytes per record kept).
+    Pooling the records into one array at every pass, as before, cost
+    5-9 s a render on the Cornell box at 16² × 15 360 training spp (14 M
+    records), against 4-5 s now; summing every few records into every cell
+    of every voxel made its small renders 5× slower."""
 
     def __init__(self, res: int):
         self.res = res
-        self.row = np.full(GRID ** 3, -1, np.int64)   # each voxel's row; -1: none yet
-        self.voxels = np.zeros(0, np.int64)           # the voxel of each row
         self.records = 0
-        self._sums = np.zeros((3, 0, res * res))      # (count, Σ L_i, Σ L_i²), rows to spare
-        self._direct = np.zeros(0)                    # Σ L_d per row
-
-    # (per voxel and cell, a view of the rows in use)
-    count = property(lambda self: self._sums[0, :len(self.voxels)])
-    sum = property(lambda self: self._sums[1, :len(self.voxels)])
-    square = property(lambda self: self._sums[2, :len(self.voxels)])
-    direct = property(lambda self: self._direct[:len(self.voxels)])
+        self.voxel_counts = np.zeros(GRID ** 3)        # records per voxel
+        self._kept = []                                # (voxel, cell, L_i, L_d) not yet folded
+        self._kept_records = 0
+        # the folded sums: per row (a voxel) and cell (count, Σ L_i, Σ L_i²),
+        # per row Σ L_d; rows to spare, grown by doubling
+        self._row = np.full(GRID ** 3, -1, np.int64)   # each voxel's row; -1: none yet
+        self._voxels = np.zeros(0, np.int64)           # the voxel of each row
+        self._sums = np.zeros((3, 0, res * res))
+        self._direct = np.zeros(0)
 
     def add(self, voxel, cell, li, ld) -> None:
         """Add records (:meth:`Records.learned`): per record its voxel, its
         direction's cell, L_i and L_d."""
         if not len(voxel):
             return
-        seen = np.flatnonzero(np.bincount(voxel, minlength=GRID ** 3))
-        new = seen[self.row[seen] < 0]
+        self.voxel_counts += np.bincount(voxel, minlength=GRID ** 3)
+        self.records += len(voxel)
+        self._kept.append((voxel, cell, li, ld))
+        self._kept_records += len(voxel)
+        if self._kept_records > np.count_nonzero(self.voxel_counts) * self.res ** 2:
+            self._fold()
+
+    def node_sums(self, node_of_voxel: np.ndarray, nodes: int):
+        """(count, Σ L_i, Σ L_i²) per node and cell (nodes, res²) and Σ L_d
+        per node, of the records in the voxels each node's entry of
+        ``node_of_voxel`` (GRID³) names."""
+        nb = self.res * self.res
+        out = [np.zeros((nodes, nb)) for _ in range(3)]
+        direct = np.zeros(nodes)
+        rows = len(self._voxels)
+        if rows:        # (a voxel's rows summed into its node's: a sparse sum)
+            node = node_of_voxel[self._voxels]
+            into = sparse.csr_matrix((np.ones(rows), (node, np.arange(rows))),
+                                     shape=(nodes, rows))
+            for a, s in zip(out, self._sums[:, :rows]):
+                a += into @ s
+            direct += np.bincount(node, weights=self._direct[:rows], minlength=nodes)
+        for voxel, cell, li, ld in self._kept:
+            node = node_of_voxel[voxel]
+            key = node * nb + cell
+            for a, w in zip(out, (None, li, li * li)):
+                a += np.bincount(key, weights=w, minlength=nodes * nb).reshape(nodes, nb)
+            direct += np.bincount(node, weights=ld, minlength=nodes)
+        return (*out, direct)
+
+    def _fold(self) -> None:
+        """Sum the kept records into the per-voxel rows."""
+        seen = np.flatnonzero(self.voxel_counts)
+        new = seen[self._row[seen] < 0]
         if len(new):
-            self.row[new] = len(self.voxels) + np.arange(len(new))
-            self.voxels = np.concatenate([self.voxels, new])
-            if len(self.voxels) > self._sums.shape[1]:      # (grown by doubling)
-                rows = max(len(self.voxels), 2 * self._sums.shape[1])
+            self._row[new] = len(self._voxels) + np.arange(len(new))
+            self._voxels = np.concatenate([self._voxels, new])
+            if len(self._voxels) > self._sums.shape[1]:
+                rows = max(len(self._voxels), 2 * self._sums.shape[1])
                 grown = np.zeros((3, rows, self._sums.shape[2]))
                 grown[:, :self._sums.shape[1]] = self._sums
-                self._sums, self._direct = grown, np.resize(self._direct, rows)
-                self._direct[len(self.voxels) - len(new):] = 0
-        nb, rows = self.res * self.res, self.row[voxel]
-        key, size = rows * nb + cell, len(self.voxels) * nb
-        for a, w in ((self.count, None), (self.sum, li), (self.square, li * li)):
-            a += np.bincount(key, weights=w, minlength=size).reshape(-1, nb)
-        self.direct[:] += np.bincount(rows, weights=ld, minlength=len(self.voxels))
-        self.records += len(voxel)
+                direct = np.zeros(rows)
+                direct[:len(self._direct)] = self._direct
+                self._sums, self._direct = grown, direct
+        nb, rows = self.res * self.res, len(self._voxels)
+        for voxel, cell, li, ld in self._kept:
+            row = self._row[voxel]
+            key = row * nb + cell
+            for a, w in zip(self._sums[:, :rows], (None, li, li * li)):
+                a += np.bincount(key, weights=w, minlength=rows * nb).reshape(rows, nb)
+            self._direct[:rows] += np.bincount(row, weights=ld, minlength=rows)
+        self._kept, self._kept_records = [], 0
 
 class Records:
     """What the training paths of one render leave: per vertex its voxel,

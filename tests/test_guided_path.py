@@ -168,13 +168,16 @@ def test_bad_parameters_are_refused(llvm, params, message):
 # ------------------------------- Learning -----------------------------------
 
 def test_records_added_in_pieces_learn_what_their_sums_say(llvm):
-    """guide.Tally: records added in three pieces (new voxels in each, so
-    its rows grow) learn the same tree as all at once, and every leaf's
-    per-cell count, Σ L_i and Σ L_i² are its records' own (summed here
-    from the records by the leaf each voxel lands in)."""
+    """guide.Tally: records added in three pieces learn the same tree and
+    pmfs as all at once, and every leaf's per-cell count, Σ L_i and Σ L_i²
+    are its records' own (summed here by the leaf each voxel lands in).
+    The first two pieces outnumber their voxels' cells, so they are folded
+    into per-voxel sums (the second into new rows); the third, spread over
+    the grid, is kept as it came: the learning reads both."""
     g, res, n = guide(), 8, 60_000
     rng = np.random.default_rng(7)
-    voxel = np.concatenate([rng.integers(100, 140, n // 2), rng.integers(0, g.GRID ** 3, n // 2)])
+    voxel = np.concatenate([rng.integers(100, 140, n // 4), rng.integers(200, 260, n // 4),
+                            rng.integers(0, g.GRID ** 3, n // 2)])
     cell = rng.integers(0, res * res, n)
     li = rng.exponential(1.0, n) * (rng.random(n) < 0.5)
     ld = rng.exponential(1.0, n) * (rng.random(n) < 0.2)
@@ -182,6 +185,7 @@ def test_records_added_in_pieces_learn_what_their_sums_say(llvm):
     whole.add(voxel, cell, li, ld)
     for a, b in ((0, n // 4), (n // 4, n // 2), (n // 2, n)):
         pieces.add(voxel[a:b], cell[a:b], li[a:b], ld[a:b])
+    assert len(pieces._voxels) == 100 and len(pieces._kept) == 1     # (both kinds)
     assert whole.records == pieces.records == n
     one, three = (g.Guide.learn(t, 2.0, 0.01) for t in (whole, pieces))
     assert one.leaves == three.leaves > 8
