@@ -393,12 +393,13 @@ class Tally:
     records summed per voxel and cell serve any tree: the records are kept
     as they come while they are fewer than the voxels' cells, and folded
     into such sums once they outnumber them, so that a long training's
-    memory stays bounded (24 bytes per cell of a voxel a record fell in:
-    6 000 voxels of a room at res 32, 150 MB; 32 bytes per record kept).
-    Pooling the records into one array at every pass, as before, cost
-    5-9 s a render on the Cornell box at 16² × 15 360 training spp (14 M
-    records), against 4-5 s now; summing every few records into every cell
-    of every voxel made its small renders 5× slower."""
+    memory stays bounded (24 bytes per cell of a voxel a record fell in,
+    24 KiB a voxel at res 32; 32 bytes per record kept). Pooling the
+    records into one array and reading them all again at every pass made
+    the learning stage's longest training (the Cornell box at 16², 14 M
+    records) twice as slow; summing every few records into every cell of
+    every voxel made small renders 5× slower (docs/measurements.md,
+    2026-12-06)."""
 
     def __init__(self, res: int):
         self.res = res
