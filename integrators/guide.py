@@ -472,6 +472,7 @@ class Tally:
             self._direct[:rows] += np.bincount(row, weights=ld, minlength=rows)
         self._kept, self._kept_records = [], 0
 
+
 class Records:
     """What the training paths of one render leave: per vertex its voxel,
     its direction's cell of the guide's square, the throughput after it, the
