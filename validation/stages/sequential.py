@@ -74,8 +74,13 @@ CONFIRM = 4
 #: tail too (seed set 71: cosine sampling on probe_spheres_interior's sunless
 #: map, one pixel of the rough gold sphere; docs/measurements.md,
 #: 2026-12-04). Such a fail is confirmed on this many times the samples,
-#: rendered at the first look's spp: an event is a firefly there, and the
-#: rules weigh it. A darker image mean is what a pdf off, a missing light or
+#: rendered at as few spp as a seed block's renders allow: an event is
+#: a firefly there, and the rules weigh it. Not at the first look's spp
+#: where that is more: a sun split's first look is the ladder's top rung
+#: alone, and there cosine sampling's glossy hits at a silhouette pixel of
+#: glossy_phong stayed at 1.5-6.7× the reference in 256 renders of 1 024
+#: spp, and a correct estimator failed (seed set 218; docs/measurements.md,
+#: 2026-12-06). A darker image mean is what a pdf off, a missing light or
 #: a clamp shows: its confirmation stays at CONFIRM.
 CONFIRM_UNSEEN = 16
 
@@ -89,13 +94,13 @@ def confirming_batch(d, batches, k: int) -> tuple[int, int]:
     ``batches``, the K = ``k`` renders of a look: CONFIRM × the samples so
     far in K renders; or, for a fail that rests on darker pixels alone (not
     the image mean), with no firefly in the renders, :data:`CONFIRM_UNSEEN`
-    × the samples at the first look's smallest spp (higher where a seed
-    block, :data:`MAX_RENDERS`, cannot hold the renders that needs)."""
+    × the samples at the fewest spp a seed block (:data:`MAX_RENDERS`
+    renders) can hold, at least K renders."""
     total = samples(batches)
     if d.tail_events or d.counted_up or (d.pooled is not None and np.any(d.pooled)):
         return max(1, math.ceil(CONFIRM * total / k)), k
     wanted = CONFIRM_UNSEEN * total
-    spp = max(min(s for s, _ in batches), math.ceil(wanted / MAX_RENDERS))
+    spp = max(1, min(math.ceil(wanted / MAX_RENDERS), math.ceil(wanted / k)))
     return spp, max(k, math.ceil(wanted / spp))
 
 
