@@ -26,9 +26,9 @@ next batch alone (fresh seeds, :data:`CONFIRM` × the samples so far), at
 the rejected pixels and on the image mean (replication.replicated_rejection):
 if it comes back, fail; if not, that batch joins the pool and the test goes
 on. A fail that rests on darker pixels alone, with no firefly in the
-renders, is confirmed on :data:`CONFIRM_UNSEEN` × the samples at the first
-look's spp (:func:`confirming_batch`): a tail the first renders missed shows
-there as fireflies, which the rules weigh. The confirming batch is rendered
+renders, is confirmed on :data:`CONFIRM_UNSEEN` × the samples at the fewest
+spp a seed block allows (:func:`confirming_batch`): a tail the first renders
+missed shows there as fireflies, which the rules weigh. The confirming batch is rendered
 even past the budget; a fail it does not confirm, with the budget spent, is
 inconclusive. Far past the reference (:data:`PATH_FIRST`) path renders
 the confirming seeds first, in windows around the pixels a fail rests on;
