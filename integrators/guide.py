@@ -384,7 +384,6 @@ def _pyramid(a: np.ndarray) -> dict[int, np.ndarray]:
     return out
 
 
-
 class Tally:
     """A render's training records, as :meth:`Guide.learn` reads them: per
     voxel the records' count (which grows the tree) and, per node of a
