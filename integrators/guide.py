@@ -441,11 +441,7 @@ class Tally:
                 a += into @ s
             direct += np.bincount(node, weights=self._direct[:rows], minlength=nodes)
         for voxel, cell, li, ld in self._kept:
-            node = node_of_voxel[voxel]
-            key = node * nb + cell
-            for a, w in zip(out, (None, li, li * li)):
-                a += np.bincount(key, weights=w, minlength=nodes * nb).reshape(nodes, nb)
-            direct += np.bincount(node, weights=ld, minlength=nodes)
+            _sum_by(out, direct, node_of_voxel[voxel], cell, li, ld)
         return (*out, direct)
 
     def _fold(self) -> None:
@@ -462,14 +458,21 @@ class Tally:
                 direct = np.zeros(rows)
                 direct[:len(self._direct)] = self._direct
                 self._sums, self._direct = grown, direct
-        nb, rows = self.res * self.res, len(self._voxels)
+        rows = len(self._voxels)
         for voxel, cell, li, ld in self._kept:
-            row = self._row[voxel]
-            key = row * nb + cell
-            for a, w in zip(self._sums[:, :rows], (None, li, li * li)):
-                a += np.bincount(key, weights=w, minlength=rows * nb).reshape(rows, nb)
-            self._direct[:rows] += np.bincount(row, weights=ld, minlength=rows)
+            _sum_by(self._sums[:, :rows], self._direct[:rows], self._row[voxel], cell, li, ld)
         self._kept, self._kept_records = [], 0
+
+
+def _sum_by(sums, direct, index, cell, li, ld) -> None:
+    """Add records to ``sums`` (count, Σ L_i, Σ L_i²), each (n, res²), at
+    row ``index`` and column ``cell`` of each record, and their L_d to
+    ``direct`` (n,) at ``index``."""
+    n, nb = sums[0].shape
+    key = index * nb + cell
+    for a, w in zip(sums, (None, li, li * li)):
+        a += np.bincount(key, weights=w, minlength=n * nb).reshape(n, nb)
+    direct += np.bincount(index, weights=ld, minlength=n)
 
 
 class Records:
