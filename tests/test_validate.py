@@ -96,6 +96,11 @@ def test_correct_estimators_pass_and_outputs_are_complete(llvm, tiny_profile, tm
     assert rows[0].startswith("scene,estimator,spp")
     assert len(rows) == 1 + len(TINY.runs) * len(TINY.estimator_names()) * 4
     assert "# mcillum validation" in (out / "summary.md").read_text()
+    # (a run with a speed stage times the machine's fixed workload, and says it)
+    probe = data["machine"]["speed"]
+    assert 0 < probe["low"] <= probe["seconds"] <= probe["high"], probe
+    said = f"{probe['workload']} in {probe['seconds'] * 1e3:.0f} ms"
+    assert said in page and said in (out / "summary.md").read_text()
     suite = ET.parse(tmp_path / "junit.xml").getroot()
     assert int(suite.get("tests")) == len(data["checks"]) and suite.get("failures") == "0"
 
@@ -137,8 +142,9 @@ def assert_ranking_follows_the_intervals(speed):
 def convergence_of(tmp_path, estimator, *extra):
     code, out = run_cli(tmp_path, "--scenes", "cap_plane", "--estimators", estimator,
                         "--no-speed", *extra)
-    return json.loads((out / "results.json").read_text())["scenes"][0]["estimators"][0][
-        "convergence"]
+    data = json.loads((out / "results.json").read_text())
+    assert "speed" not in data["machine"]        # (no speed stage: no probe of the machine)
+    return data["scenes"][0]["estimators"][0]["convergence"]
 
 
 def test_uniform_estimator_slope_is_monte_carlo(llvm, tiny_profile, tmp_path):

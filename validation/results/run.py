@@ -53,7 +53,9 @@ VERSION = 1
 #: the cost) and each ``bias`` row its ``renders``.
 #: 18: an efficiency ratio's ``kind`` may be ``heavy_tailed`` (its interval
 #: then runs from 0: an upper bound).
-MINOR_VERSION = 18
+#: 19: ``machine`` may carry ``speed``: the run's time for a fixed workload
+#: (run/probe.py), where it had a speed stage.
+MINOR_VERSION = 19
 
 
 @dataclass(kw_only=True)

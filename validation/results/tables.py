@@ -149,10 +149,15 @@ def learning_summary(learned: Learning) -> str:
 
 
 def wall_text(results: Results) -> str:
-    """The run's wall time, and a re-run's own where it rendered nothing."""
+    """The run's wall time, a re-run's own where it rendered nothing, and
+    the machine's time for the fixed workload where it was probed
+    (run/probe.py)."""
     again = (f" (re-run into the finished directory: {results.rerun_seconds:.0f} s, "
              "nothing rendered)" if results.rerun_seconds is not None else "")
-    return f"{results.wall_seconds:.0f} s{again}"
+    speed = results.machine.get("speed")
+    probe = (f"; this machine renders {speed['workload']} in {speed['seconds'] * 1e3:.0f} ms"
+             if speed else "")
+    return f"{results.wall_seconds:.0f} s{again}{probe}"
 
 
 def ratio_text(r) -> str:
