@@ -155,7 +155,7 @@ def wall_text(results: Results) -> str:
     again = (f" (re-run into the finished directory: {results.rerun_seconds:.0f} s, "
              "nothing rendered)" if results.rerun_seconds is not None else "")
     speed = results.machine.get("speed")
-    probe = (f"; this machine renders {speed['workload']} in {speed['seconds'] * 1e3:.0f} ms"
+    probe = (f" (this machine renders {speed['workload']} in {speed['seconds'] * 1e3:.0f} ms)"
              if speed else "")
     return f"{results.wall_seconds:.0f} s{again}{probe}"
 
