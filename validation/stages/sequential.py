@@ -100,7 +100,7 @@ def confirming_batch(d, batches, k: int) -> tuple[int, int]:
     if d.tail_events or d.counted_up or (d.pooled is not None and np.any(d.pooled)):
         return max(1, math.ceil(CONFIRM * total / k)), k
     wanted = CONFIRM_UNSEEN * total
-    spp = max(1, min(math.ceil(wanted / MAX_RENDERS), math.ceil(wanted / k)))
+    spp = max(1, math.ceil(wanted / MAX_RENDERS))
     return spp, max(k, math.ceil(wanted / spp))
 
 
