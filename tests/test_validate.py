@@ -9,6 +9,7 @@ import subprocess
 import sys
 import time
 import xml.etree.ElementTree as ET
+from types import SimpleNamespace
 
 import jsonschema
 import numpy as np
@@ -20,7 +21,7 @@ import mitsuba as mi
 from mcillum import files
 from mcillum.integrators import registry
 from mcillum.envmaps import procedural
-from mcillum.validation import cli, results
+from mcillum.validation import cli, pipeline, results
 from mcillum.validation.plan import profiles, scenes
 from mcillum.validation.run import references, renders
 from mcillum.validation.stages import budgets, common
@@ -362,6 +363,20 @@ def test_rerun_resumes_without_rendering(llvm, tiny_profile, tmp_path, monkeypat
     assert calls == [], "a re-run into a finished directory rendered again"
     assert "rerun_seconds" not in first and again["wall_seconds"] == first["wall_seconds"]
     assert 0 < again["rerun_seconds"] < first["wall_seconds"]
+
+
+def test_a_rerun_keeps_the_probe_of_the_run_it_reports(tmp_path):
+    """A re-run that rendered nothing reports the first run's wall time and
+    timings, so it keeps that run's machine probe beside them (its own
+    machine may be another); a run that rendered reports its own."""
+    probe = {"workload": "w", "seconds": 0.2, "low": 0.19, "high": 0.25}
+    path = tmp_path / "results.json"
+    path.write_text(json.dumps({"wall_seconds": 1789.0, "machine": {"speed": probe}}))
+    kept = SimpleNamespace(rendered=False, kept=True)
+    assert pipeline._first_run(str(path), kept) == (1789.0, probe)
+    path.write_text(json.dumps({"wall_seconds": 12.0, "machine": {}}))   # (no speed stage)
+    assert pipeline._first_run(str(path), kept) == (12.0, None)
+    assert pipeline._first_run(str(path), SimpleNamespace(rendered=True, kept=True)) is None
 
 
 # ------------------------------ Reference cache --------------------------------

@@ -231,13 +231,13 @@ def validate(profile_name="quick", scene_names=None, estimators=None,
                 bar.close()
             where = ex.record()
         seconds = time.perf_counter() - start
-        first = _first_wall_seconds(json_path, run) if before is not None else None
+        first = _first_run(json_path, run) if before is not None else None
         out = results.Results(
             created=time.strftime("%Y-%m-%dT%H:%M:%S%z"), profile=profile.name,
             variant=variant, mitsuba_version=mi.__version__, drjit_version=dr.__version__,
-            machine=_machine(speed_probe), alpha=statistics.ALPHA,
-            reference_fraction=profile.reference_fraction,
-            wall_seconds=first if first is not None else seconds,
+            machine=_machine(first[1] if first is not None else speed_probe),
+            alpha=statistics.ALPHA, reference_fraction=profile.reference_fraction,
+            wall_seconds=first[0] if first is not None else seconds,
             rerun_seconds=seconds if first is not None else None,
             scenes=scene_results, checks=checks,
             failures=case_results,
@@ -298,18 +298,23 @@ def _machine(speed_probe: dict | None) -> dict:
             **({"speed": speed_probe} if speed_probe else {})}
 
 
-def _first_wall_seconds(json_path: str, run: Run) -> float | None:
-    """The wall time of the run whose renders this one reused, where this
-    one rendered nothing of its own (a re-run into a finished directory:
-    its own few seconds are ``rerun_seconds``); None otherwise."""
+def _first_run(json_path: str, run: Run) -> tuple[float, dict | None] | None:
+    """The wall time and the machine probe (run/probe.py, or None) of the
+    run whose renders this one reused, where this one rendered nothing of
+    its own (a re-run into a finished directory: its own few seconds are
+    ``rerun_seconds``, and the timings it reports are that run's); None
+    otherwise."""
     if run.rendered or not run.kept:
         return None
     try:
         with open(json_path, encoding="utf-8") as f:
-            seconds = json.load(f).get("wall_seconds")
+            data = json.load(f)
+        seconds, speed = data.get("wall_seconds"), data.get("machine", {}).get("speed")
     except (OSError, ValueError, AttributeError):
         return None
-    return float(seconds) if isinstance(seconds, (int, float)) else None
+    if not isinstance(seconds, (int, float)):
+        return None
+    return float(seconds), speed if isinstance(speed, dict) else None
 
 
 def _stamp(path: str):
