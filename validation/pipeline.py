@@ -54,7 +54,7 @@ from .checks import cases as case_checks
 from .checks import scene as scene_checks
 from .plan import profiles, scenes, seeds, user_scenes
 from .results import layout
-from .run import executors, probe, renders
+from .run import executors, renders
 from .run.progress import Progress
 from .stages import cases, common, learning, quadrature, scene, speed, sun_split
 from .stages.context import Context, Run
@@ -213,10 +213,6 @@ def validate(profile_name="quick", scene_names=None, estimators=None,
         with start_executor(executor, ray_address, ray_workers, variant, loaded) as ex:
             bar = Progress(total, progress)
             run = Run(profile, variant, cache_dir, out_dir, bar, ex, budget)
-            # (where the run times its estimators: its machine's speed, to
-            # compare its wall time and timings with another machine's)
-            speed_probe = (probe.machine_speed() if speed_stage and any(r.display for r in plans)
-                           else None)
             try:
                 for plan in plans:
                     result, found = compare_scene(run, plan, estimators, speed_stage,
@@ -235,7 +231,7 @@ def validate(profile_name="quick", scene_names=None, estimators=None,
         out = results.Results(
             created=time.strftime("%Y-%m-%dT%H:%M:%S%z"), profile=profile.name,
             variant=variant, mitsuba_version=mi.__version__, drjit_version=dr.__version__,
-            machine=_machine(first[1] if first is not None else speed_probe),
+            machine=_machine(first[1] if first is not None else run.machine_speed),
             alpha=statistics.ALPHA, reference_fraction=profile.reference_fraction,
             wall_seconds=first[0] if first is not None else seconds,
             rerun_seconds=seconds if first is not None else None,

@@ -54,7 +54,7 @@ VERSION = 1
 #: 18: an efficiency ratio's ``kind`` may be ``heavy_tailed`` (its interval
 #: then runs from 0: an upper bound).
 #: 19: ``machine`` may carry ``speed``: the run's time for a fixed workload
-#: (run/probe.py), where it had a speed stage.
+#: (run/probe.py), where it timed renders.
 MINOR_VERSION = 19
 
 

@@ -1,11 +1,13 @@
-"""How fast this machine renders: one fixed workload, timed as a run starts.
+"""How fast this machine renders: one fixed workload, timed before a run's
+first timed render (stages/speed.time_costs).
 
 A run's wall time says as much about its machine as about its work: the
 same full profile took 1.19× longer on one day's development VM than on the
 day before, with nothing else running (docs/measurements.md, 2026-12-06).
-So every run times Mitsuba's `path` on the bundled Cornell box at a fixed
-film and spp, in this process, and records it beside its wall time; two
-runs' wall times compare after dividing each by its own probe.
+So every run that times renders first times Mitsuba's `path` on the
+bundled Cornell box at a fixed film and spp, in this process, and records
+it beside its wall time; two runs' wall times compare after dividing each
+by its own probe.
 """
 
 from __future__ import annotations

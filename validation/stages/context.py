@@ -36,6 +36,9 @@ class Run:
     #: directory (stacks.kept): a run that rendered none is a re-run.
     rendered: int = 0
     kept: int = 0
+    #: The machine's time for a fixed workload (run/probe.py), taken before
+    #: the run's first timed render; None while nothing was timed.
+    machine_speed: dict | None = None
 
     @property
     def sequential(self):

@@ -67,7 +67,7 @@ from mcillum.integrators import registry
 
 from ..plan import seeds
 from ..results import Budget, BudgetRun, Interval, Ratio, Speed, Try, layout
-from ..run import load, references, timing
+from ..run import load, probe, references, timing
 from ..run.stacks import Stack
 from ..stats import costs, metrics, tails
 from . import budgets, common
@@ -100,8 +100,14 @@ def time_costs(ctx) -> None:
     reported, with intervals, is the line through every pilot render
     (:func:`measure_speed`).
     Rounds at spp near the smallest budget used to follow; the budgets'
-    corrections made them redundant (docs/measurements.md, 2026-12-03)."""
+    corrections made them redundant (docs/measurements.md, 2026-12-03).
+    Before the run's first timed render, the machine's probe (run/probe.py);
+    a re-run whose timings are all kept takes none."""
     ctx.run.executor.timed_on()                         # (forget earlier stages')
+    if ctx.run.machine_speed is None and (ctx.timings is None or not ctx.budget_stacks):
+        # (the run's first timed renders: the machine's speed first, to
+        # compare its timings and wall time with another machine's)
+        ctx.run.machine_speed = probe.machine_speed()
     if ctx.timings is None:                             # (else from the cache)
         sub, d = ctx.display, ctx.plan.display
         ctx.timings = timing.timed(sub.run.executor, _job(sub),
