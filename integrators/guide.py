@@ -318,8 +318,19 @@ class Guide:
         arrays = {"leaf": leaf, "alpha": alpha, **guide_tables(self.pmf[leaves])}
         if not dr.is_jit_v(mi.Float):
             return arrays
-        return {k: (mi.UInt32 if v.dtype == np.uint32 else mi.Float)(v)
-                for k, v in arrays.items()}
+        out = {k: owned(v) for k, v in arrays.items()}
+        dr.eval(out)
+        return out
+
+
+def owned(array: np.ndarray):
+    """``array`` as the variant's UInt32 or Float, in memory Dr.Jit owns:
+    made from numpy alone it maps numpy's memory (LLVM variants), and a
+    frozen pass (validation/run/replays.py) is recorded again whenever that
+    memory's alignment changes, 5-14 recordings for the same 12 renders
+    where it needs 5. (The opaque 0 keeps the sum from folding away.)"""
+    kind = mi.UInt32 if array.dtype == np.uint32 else mi.Float
+    return kind(array) + dr.opaque(kind, 0)
 
 
 def mixture_share(bsdf_fraction: float, indirect):
@@ -494,6 +505,18 @@ class Records:
             self.path = dr.zeros(mi.Float, lanes)
         else:
             self.rows, self.path_L, self.lanes_taken = {}, {}, itertools.count()
+
+    #: The device arrays a training pass scatters into, in order.
+    FIELDS = ("voxel", "cell", "beta", "L", "hit", "path")
+
+    def arrays(self) -> tuple:
+        """The device arrays of :attr:`FIELDS` (JIT variants)."""
+        return tuple(getattr(self, f) for f in self.FIELDS)
+
+    def hold(self, arrays) -> None:
+        """Make ``arrays`` (as :meth:`arrays` returns them) these records'."""
+        for f, a in zip(self.FIELDS, arrays):
+            setattr(self, f, a)
 
     def learned(self):
         """(voxel, cell, L_i, L_d) as numpy, one row per vertex whose path
