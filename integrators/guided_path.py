@@ -87,6 +87,23 @@ def invert_guide(first, pmf, row, res: int, w: mi.Vector3f):
     return u1, mi.Point2f(u.x * res - mi.Float(c % res), u.y * res - mi.Float(c // res))
 
 
+# ----------------------------- One pass ---------------------------------
+
+
+def launch_pass(scene, integrator, sensor, spp: int, seed, guide, records):
+    """One pass of ``integrator``, a function of its arguments alone: (the
+    image, the arrays of the training ``records`` after the pass scattered
+    into them, or None where it records nothing). What it reads (``guide``,
+    :meth:`Guide.device`'s arrays, or None) and writes are arguments, so
+    Dr.Jit can freeze it and a replay launches the recorded kernels with
+    another guide and seed (validation/run/replays.py)."""
+    integrator._guide = guide
+    if records is not None:
+        integrator._records.hold(records)
+    image = IlluminationEstimator.render(integrator, scene, sensor, seed, spp)
+    return image, (None if records is None else integrator._records.arrays())
+
+
 # ------------------------------ Plugin ----------------------------------
 
 
@@ -213,6 +230,12 @@ class GuidedPathIntegrator(IlluminationEstimator):
     records_paths = False                      # (True during training passes)
     learns = True                              # (the learning stage measures it)
     freezable = False                          # (it learns in Python between passes)
+    freezes_passes = True                      # (... each pass is launch_pass)
+    launch_pass = staticmethod(launch_pass)
+    #: A frozen :func:`launch_pass` that every pass replays: the
+    #: validation's untimed renders only (validation/run/replays.py); a
+    #: timed render is traced, as a user's is.
+    frozen_pass = None
     sample_emitter = staticmethod(sample_emitter_direction)
     emitter_pdf = staticmethod(emitter_direction_pdf)
 
@@ -292,7 +315,7 @@ class GuidedPathIntegrator(IlluminationEstimator):
                     break
                 self._guide = guide.device(self.bsdf_fraction)
             rest = spp - sum(t["spp"] for t in self.training)
-            image = super().render(scene, sensor, seed, rest, develop, evaluate)
+            image = self._launch(scene, sensor, seed, rest, develop, evaluate)
             if not (develop and self.combine_passes and self._images):
                 return image                # (an undeveloped film holds the last pass)
             # ------------------ Combine the passes ------------------
@@ -322,9 +345,26 @@ class GuidedPathIntegrator(IlluminationEstimator):
         for k, n in enumerate(p for p in per if p):
             self._records, self.records_paths = Records(pixels * n, depth), True
             self._images.append(
-                (n, super().render(scene, sensor, pass_seed(seed, 1000 + k), n, True, True)))
+                (n, self._launch(scene, sensor, pass_seed(seed, 1000 + k), n, True, True)))
             tally.add(*self._records.learned())
         self.records_paths = False
+
+    def _launch(self, scene, sensor, seed, spp, develop, evaluate):
+        """One pass: Mitsuba's render, or :attr:`frozen_pass` replaying it
+        (a developed film only)."""
+        if self.frozen_pass is None or not develop:
+            return super().render(scene, sensor, seed, spp, develop, evaluate)
+        guide, records = self._guide, self._records
+        try:
+            # (an opaque seed: one recording per spp, not one per seed)
+            image, arrays = self.frozen_pass(
+                scene, self, sensor, spp, dr.opaque(mi.UInt32, seed), guide,
+                records.arrays() if self.records_paths else None)
+        finally:
+            self._guide, self._records = guide, records    # (not the recording's)
+        if arrays is not None:
+            records.hold(arrays)
+        return image
 
     # ------------------------- Training records ---------------------------
 

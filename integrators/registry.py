@@ -81,6 +81,10 @@ class Facts:
     #: and seed (no Python work between them): the validation may record it
     #: once and replay it (validation/run/replays.py).
     freezable: bool = False
+    #: Its render() learns in Python between launches, each of them its
+    #: class's ``launch_pass`` (a function of its arguments alone): the
+    #: validation may record each launch and replay it (``frozen_pass``).
+    freezes_passes: bool = False
 
     @property
     def reaches(self) -> frozenset:
@@ -118,7 +122,8 @@ def facts_of(cls) -> Facts:
                  equal_rays_baseline=getattr(cls, "equal_rays_baseline", "cosine_hemisphere"),
                  learns=getattr(cls, "learns", False), point_set=is_point_set_class(cls),
                  # (declared by the class itself: a subclass may do host work)
-                 freezable=bool(vars(cls).get("freezable", False)))
+                 freezable=bool(vars(cls).get("freezable", False)),
+                 freezes_passes=bool(vars(cls).get("freezes_passes", False)))
 
 
 def is_point_set_class(cls) -> bool:

@@ -10,8 +10,12 @@ stage times what a user's ``mi.render`` costs.
 
 Only integrators whose facts say ``freezable`` are replayed: Mitsuba's
 ``path`` and mcillum's estimators that do no work in Python between
-launches. A user's integrator is rendered as written: what its ``render()``
-does in Python would run at the recording only. So is any integrator on a
+launches. One that learns in Python between its launches (``guided_path``,
+facts ``freezes_passes``) has each launch replayed instead: its
+``launch_pass``, frozen, is given to it as ``frozen_pass`` for the render,
+and what it learns from still runs. A user's integrator is rendered as
+written: what its ``render()`` does in Python would run at the recording
+only. So is any integrator on a
 scene that holds a Python plugin other than mcillum's (a user's BSDF or
 emitter): one that makes a Dr.Jit array from host memory while it is traced
 aborts the process during a recording, where no exception can be caught. A
@@ -34,6 +38,10 @@ from .renders import launch
 #: Recordings kept per (scene, integrator): one per spp, the least recently
 #: used dropped first.
 RECORDINGS = 8
+#: ... of an integrator replayed pass by pass: one per pass of a render
+#: (training and image, of their spp), and as many again where a guide's
+#: arrays change which of them have the same size.
+PASS_RECORDINGS = 32
 
 
 def freezable(name: str, integrator) -> bool:
@@ -45,6 +53,13 @@ def freezable(name: str, integrator) -> bool:
     if name == registry.REFERENCE:
         return integrator.class_name() == "PathIntegrator"
     return type(integrator) is registry.plugin_class(name)
+
+
+def freezes_passes(name: str, integrator) -> bool:
+    """May each launch of ``integrator``'s render be recorded and replayed
+    (facts ``freezes_passes``, the class registered under ``name``)?"""
+    return (name != registry.REFERENCE and registry.facts(name).freezes_passes
+            and type(integrator) is registry.plugin_class(name))
 
 
 def foreign_plugins(scene) -> list[str]:
@@ -73,9 +88,13 @@ class Replays:
     def launcher(self, scene, integrator, name: str):
         """``launch(scene, integrator, spp, seed)`` replaying the recording of
         this scene and integrator, or None where it is rendered as written
-        (scalar variants, an integrator not :func:`freezable`, a scene
-        with :func:`foreign_plugins`, one that could not be recorded)."""
-        if not dr.is_jit_v(mi.Float) or name in self.refused or not freezable(name, integrator):
+        (scalar variants, an integrator neither :func:`freezable` nor
+        :func:`freezes_passes`, a scene with :func:`foreign_plugins`, one
+        that could not be recorded)."""
+        if not dr.is_jit_v(mi.Float) or name in self.refused:
+            return None
+        whole = freezable(name, integrator)
+        if not (whole or freezes_passes(name, integrator)):
             return None
         if scene is not self._scene:
             self.clear()
@@ -84,22 +103,41 @@ class Replays:
             return None
         entry = self._frozen.get(id(integrator))
         if entry is None or entry[0] is not integrator:
-            entry = (integrator, dr.freeze(launch, limit=RECORDINGS, warn_after=10 ** 6))
+            entry = (integrator, dr.freeze(launch, limit=RECORDINGS, warn_after=10 ** 6)
+                     if whole else dr.freeze(integrator.launch_pass, limit=PASS_RECORDINGS,
+                                             warn_after=10 ** 6))
             self._frozen[id(integrator)] = entry
         frozen = entry[1]
 
         def replay(scene_, integrator_, spp, seed):
             try:
                 with _no_collection():
-                    # (an opaque seed: one recording per spp, not one per seed)
-                    return frozen(scene_, integrator_, spp, dr.opaque(mi.UInt32, seed))
+                    if whole:
+                        # (an opaque seed: one recording per spp, not one per seed)
+                        return frozen(scene_, integrator_, spp, dr.opaque(mi.UInt32, seed))
+                    integrator_.frozen_pass = frozen
+                    try:
+                        return launch(scene_, integrator_, spp, seed)
+                    finally:
+                        integrator_.frozen_pass = None
             except RuntimeError as err:
-                if "recording a frozen function" not in str(err):
+                if not _recording_failed(err):
                     raise
                 self.refused.add(name)
                 self._frozen.pop(id(integrator), None)
                 return launch(scene_, integrator_, spp, seed)
         return replay
+
+
+def _recording_failed(err: BaseException) -> bool:
+    """Did ``err`` come from Dr.Jit failing to record? (A pass replayed
+    inside ``mi.render`` fails inside its custom operation, which raises
+    an error of its own from Dr.Jit's.)"""
+    while err is not None:
+        if "recording a frozen function" in str(err):
+            return True
+        err = err.__cause__
+    return False
 
 
 @contextlib.contextmanager
