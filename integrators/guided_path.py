@@ -101,6 +101,11 @@ def launch_pass(scene, integrator, sensor, spp: int, seed, guide, records):
     if records is not None:
         integrator._records.hold(records)
     image = IlluminationEstimator.render(integrator, scene, sensor, seed, spp)
+    # (the sampler's state now depends on the whole pass: left so, a
+    # recording would evaluate it, a second kernel 0.6x the pass's, as
+    # mi.render's own re-seeding says)
+    sensor = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
+    sensor.sampler().seed(0, 1)
     return image, (None if records is None else integrator._records.arrays())
 
 

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import mcillum  # noqa: F401
+import drjit as dr
 import mitsuba as mi
 
 from mcillum.integrators import registry
@@ -23,6 +24,19 @@ SPPS = (4, 16)
 
 def _freezable() -> list[str]:
     return [n for n in registry.names() if registry.facts(n).freezable] + ["path"]
+
+
+def _path_kernels(render) -> int:
+    """Kernels of more than 200 operations (those that trace paths) that
+    ``render()`` launches."""
+    dr.kernel_history()
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        render()
+        return sum(k["type"] == dr.KernelType.JIT and k["operation_count"] > 200
+                   for k in dr.kernel_history())
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
 
 
 def _both(scene, integrator, name, book):
@@ -88,6 +102,11 @@ def test_a_learner_replays_each_pass_and_still_learns(llvm, scene_name):
             assert np.array_equal(traced, replayed), (spp, seed)
             passes.add(len(learned))
     assert passes == {0, 1, 2}
+    # a replay launches the traced render's path kernels and no more (left
+    # dependent on the pass, the sampler's state was one more of each)
+    traced = _path_kernels(lambda: renders.render(scene, integrator, 64, 9))
+    assert _path_kernels(lambda: renders.render(scene, integrator, 64, 9, launcher)) \
+        == traced == 1 + len(integrator.training)
     frozen = book._frozen[id(integrator)][1]
     # (one per pass of each spp at most, never one per seed: 5-6 here; the
     # guide's arrays mapped from numpy's memory made 5-14)
