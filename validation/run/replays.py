@@ -58,7 +58,7 @@ def freezable(name: str, integrator) -> bool:
 def freezes_passes(name: str, integrator) -> bool:
     """May each launch of ``integrator``'s render be recorded and replayed
     (facts ``freezes_passes``, the class registered under ``name``)?"""
-    return (name != registry.REFERENCE and registry.facts(name).freezes_passes
+    return (registry.facts(name).freezes_passes
             and type(integrator) is registry.plugin_class(name))
 
 
@@ -103,9 +103,9 @@ class Replays:
             return None
         entry = self._frozen.get(id(integrator))
         if entry is None or entry[0] is not integrator:
-            entry = (integrator, dr.freeze(launch, limit=RECORDINGS, warn_after=10 ** 6)
-                     if whole else dr.freeze(integrator.launch_pass, limit=PASS_RECORDINGS,
-                                             warn_after=10 ** 6))
+            entry = (integrator, dr.freeze(launch if whole else integrator.launch_pass,
+                                           limit=RECORDINGS if whole else PASS_RECORDINGS,
+                                           warn_after=10 ** 6))
             self._frozen[id(integrator)] = entry
         frozen = entry[1]
 
