@@ -329,10 +329,14 @@ class GuidedPathIntegrator(IlluminationEstimator):
             # learning and v1 after) it is better unless v0 > v1·(2−f)/(1−f),
             # 2.1× at f = ⅛; the learned density cut variance by 1.9× at most
             # (docs/measurements.md, 2026-12-03).
-            total = image * rest
+            # (the weights opaque: as literals, every new spp compiled a
+            # kernel, and a timed render that compiles is rendered again)
+            def weight(n):
+                return dr.opaque(mi.Float, n / spp)
+            total = image * weight(rest)
             for n, im in self._images:
-                total += im * n
-            return total / spp
+                total += im * weight(n)
+            return total
         finally:
             # (a wrapper calling sample() alone later renders as mis, not
             # with this scene's guide)
