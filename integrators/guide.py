@@ -328,9 +328,22 @@ def owned(array: np.ndarray):
     made from numpy alone it maps numpy's memory (LLVM variants), and a
     frozen pass (validation/run/replays.py) is recorded again whenever that
     memory's alignment changes, 5-14 recordings for the same 12 renders
-    where it needs 5. (The opaque 0 keeps the sum from folding away.)"""
+    where it needs 5. (The opaque 0 keeps the sum from folding away.) The
+    copy reads from a 64-byte aligned buffer: Dr.Jit compiles the reading
+    kernel for the source's alignment, and numpy's varied, so a copy could
+    compile in any render, and a timed render that compiles is rendered
+    again (validation/run/renders.timed_render)."""
     kind = mi.UInt32 if array.dtype == np.uint32 else mi.Float
-    return kind(array) + dr.opaque(kind, 0)
+    return kind(_aligned(array)) + dr.opaque(kind, 0)
+
+
+def _aligned(array: np.ndarray, to: int = 64) -> np.ndarray:
+    """A copy of ``array`` (1-D) whose data starts on a ``to``-byte boundary."""
+    raw = np.empty(array.nbytes + to, np.uint8)
+    start = -raw.ctypes.data % to
+    out = raw[start:start + array.nbytes].view(array.dtype)
+    out[:] = array
+    return out
 
 
 def mixture_share(bsdf_fraction: float, indirect):

@@ -264,6 +264,31 @@ def test_the_training_images_join_the_result_weighted_by_their_spp(llvm):
     assert np.array_equal(a, b)
 
 
+
+def test_a_new_spp_compiles_nothing_that_one_like_it_compiled(llvm):
+    """100 and 101 spp train in the same passes (4 and 8 spp) and render the
+    rest undivided by a shift: the second launches only kernels the first
+    had, none compiled or read from Dr.Jit's disk cache. With the passes'
+    weights as literals it compiled the sum's; with the guide's arrays
+    copied from numpy's memory as it lay, a copy's kernel for each
+    alignment. A timed render that compiles is rendered again
+    (run/renders.timed_render)."""
+    scene = renders.load_scene(str(SCENES / "cornell_box.xml"), res=8)
+    integrator = renders.make_integrator("guided_path", {"max_variance_ratio": 1e30})
+    renders.render(scene, integrator, 100, seed=1)
+    assert [t["spp"] for t in integrator.training] == [4, 8]
+    was = dr.flag(dr.JitFlag.KernelHistory)
+    dr.kernel_history()
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        renders.render(scene, integrator, 101, seed=2)
+        compiled = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT
+                    and (not k["cache_hit"] or k["cache_disk"])]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, was)
+    assert [t["spp"] for t in integrator.training] == [4, 8]
+    assert compiled == [], [(k["size"], k["hash"]) for k in compiled]
+
 def test_mixture_share_runs_from_bsdf_fraction_to_one():
     share = guide().mixture_share
     assert share(0.5, 1.0) == 0.5 and share(0.5, 0.0) == 1.0 and share(0.2, 0.5) == 0.6
@@ -373,7 +398,8 @@ def test_the_learning_stage_asks_for_the_passes_the_plugin_makes(llvm):
     for spp in (1, 4, 16, 512, 1024):
         for j in learning.PASSES:
             total, params = learning.training(spp, j)
-            passes = guide().training_passes(total, params["train_fraction"], params["train_passes"])
+            passes = guide().training_passes(total, params["train_fraction"],
+                                             params["train_passes"])
             assert passes == [spp * 2 ** i for i in range(j)], (spp, j, passes)
             assert total - sum(passes) == spp
     assert [learning.image_spp(x) for x in ((16, 64), (4096,), (1, 2))] == [16, 1024, 1]
