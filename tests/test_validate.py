@@ -529,12 +529,14 @@ def test_corrupt_cache_entry_is_rendered_anew(llvm, tmp_path):
 
 def test_cache_survives_a_killed_run(llvm, tmp_path):
     """Kill `mcillum validate` mid-run: no partial files are left where complete
-    ones are expected, and a re-run completes, reusing what was finished."""
+    ones are expected, and a re-run completes, reusing what was finished.
+    (Two estimators beside path: what is cached does not depend on how many.)"""
     out, cache = tmp_path / "out", tmp_path / "cache"
     small = tmp_path / "tiny.toml"
     small.write_text(dump(TINY))          # (a subprocess does not see the monkeypatch)
     cmd = [sys.executable, "-m", "mcillum.validation.cli", "validate", "--out", str(out),
-           "--cache", str(cache), "--profile", str(small)]
+           "--cache", str(cache), "--profile", str(small),
+           "--estimators", "cosine_hemisphere", "mis"]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 240
     while time.time() < deadline and not completed(out / "renders"):
