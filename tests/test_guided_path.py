@@ -264,7 +264,6 @@ def test_the_training_images_join_the_result_weighted_by_their_spp(llvm):
     assert np.array_equal(a, b)
 
 
-
 def test_a_new_spp_compiles_nothing_that_one_like_it_compiled(llvm):
     """100 and 101 spp train in the same passes (4 and 8 spp) and render the
     rest undivided by a shift: the second launches only kernels the first
@@ -277,17 +276,11 @@ def test_a_new_spp_compiles_nothing_that_one_like_it_compiled(llvm):
     integrator = renders.make_integrator("guided_path", {"max_variance_ratio": 1e30})
     renders.render(scene, integrator, 100, seed=1)
     assert [t["spp"] for t in integrator.training] == [4, 8]
-    was = dr.flag(dr.JitFlag.KernelHistory)
-    dr.kernel_history()
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
-    try:
-        renders.render(scene, integrator, 101, seed=2)
-        compiled = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT
-                    and (not k["cache_hit"] or k["cache_disk"])]
-    finally:
-        dr.set_flag(dr.JitFlag.KernelHistory, was)
+    _, kernels = renders.launched(lambda: renders.render(scene, integrator, 101, seed=2))
+    compiled = [k for k in kernels if not k["cache_hit"] or k["cache_disk"]]
     assert [t["spp"] for t in integrator.training] == [4, 8]
     assert compiled == [], [(k["size"], k["hash"]) for k in compiled]
+
 
 def test_mixture_share_runs_from_bsdf_fraction_to_one():
     share = guide().mixture_share

@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 
 import mcillum  # noqa: F401
-import drjit as dr
 import mitsuba as mi
 
 from mcillum.integrators import registry
@@ -29,14 +28,7 @@ def _freezable() -> list[str]:
 def _path_kernels(render) -> int:
     """Kernels of more than 200 operations (those that trace paths) that
     ``render()`` launches."""
-    dr.kernel_history()
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
-    try:
-        render()
-        return sum(k["type"] == dr.KernelType.JIT and k["operation_count"] > 200
-                   for k in dr.kernel_history())
-    finally:
-        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    return sum(k["operation_count"] > 200 for k in renders.launched(render)[1])
 
 
 def _both(scene, integrator, name, book):

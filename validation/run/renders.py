@@ -336,14 +336,21 @@ def timed_render(scene: mi.Scene, integrator: mi.Integrator, spp: int,
 
 
 def _watched(scene, integrator, spp: int, seed: int) -> tuple[Render, bool]:
-    """(:func:`render` watching the load, whether it compiled a kernel):
-    Dr.Jit's kernel history, on for this render only, left as it was."""
+    """(:func:`render` watching the load, whether it compiled a kernel)."""
+    out, kernels = launched(lambda: render(scene, integrator, spp, seed, watch_load=True))
+    return out, any(not k["cache_hit"] for k in kernels)
+
+
+def launched(fn) -> tuple:
+    """(``fn()``, the JIT kernels it launched: Dr.Jit's kernel history
+    entries, with ``cache_hit``, ``cache_disk``, ``size``, ``hash`` …). The
+    history is on for this call only and left as it was."""
     was = dr.flag(dr.JitFlag.KernelHistory)
-    dr.kernel_history()                          # (empty it: this render's kernels only)
+    dr.kernel_history()                          # (empty it: this call's kernels only)
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     try:
-        out = render(scene, integrator, spp, seed, watch_load=True)
-        return out, any(not k.get("cache_hit", 1) for k in dr.kernel_history())
+        out = fn()
+        return out, [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, was)
 
