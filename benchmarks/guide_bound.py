@@ -1,0 +1,179 @@
+"""What bounds guided_path's learned density on sunlit_room under its hole:
+the variance of one indirect bounce, per sample, with the density it learned
+against densities that know the answer (oracles) on the same cells.
+
+At the camera's first hit in each pixel (pixel centres), N directions are
+drawn by each strategy and the one-bounce integrand is estimated: the
+radiance leaving the sunlit patch (grey, albedo 1) towards the point, times
+cos θ / π. Strategies:
+
+* ``cosine``: BSDF sampling of a diffuse surface;
+* ``learned``: guided_path's mixture (its BSDF share, its pmf) after a
+  render of ``--spp`` at max_depth 3, so that its records carry this
+  integrand alone;
+* ``oracle point``: the same mixture and floor, with a pmf on the R² cells
+  of the cosine-warped square made for each point from the integrand itself
+  (cell means of J² jittered directions): what the cells allow;
+* ``oracle leaf``: the point oracles' pmfs averaged over the points in one
+  leaf of the learned tree: what the cells and the tree's leaves allow.
+
+Printed per strategy: the relative variance of one sample (Σ var / Σ mean²
+over the pixels) and the share of samples that reach the sunlit patch.
+
+    python benchmarks/guide_bound.py --directional-res 32 64
+    python benchmarks/guide_bound.py -p spatial_threshold=5
+
+A script, not part of the installed package: it needs mcillum installed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+
+import numpy as np
+
+import mcillum  # noqa: F401  (LLVM set-up before drjit)
+from mcillum.validation.plan import scenes
+from mcillum.validation.run import renders
+
+SUN = np.array([0.25, -1.0, 0.35]) / np.linalg.norm([0.25, -1.0, 0.35])   # (the scene's)
+IRRADIANCE = 500.0
+
+
+def first_hits(scene, res: int, n: int):
+    """The camera's first hits, ``n`` lanes per pixel centre (pixel major)."""
+    import mitsuba as mi
+    x, y = np.meshgrid((np.arange(res) + 0.5) / res, (np.arange(res) + 0.5) / res)
+    pos = mi.Point2f(np.repeat(x.ravel(), n), np.repeat(y.ravel(), n))
+    ray, _ = scene.sensors()[0].sample_ray(0, 0.5, pos, mi.Point2f(0.5))
+    return scene.ray_intersect(ray)
+
+
+def patch_radiance(scene, si, w):
+    """Radiance leaving the sunlit patch towards ``si`` along -``w`` (0 where
+    the ray from ``si`` along ``w`` meets no sunlit surface)."""
+    import drjit as dr
+    import mitsuba as mi
+    ray = si.spawn_ray(w)
+    hit = scene.ray_intersect(ray)
+    lit = dr.maximum(dr.dot(hit.sh_frame.n, mi.Vector3f(-SUN)), 0)
+    lit = dr.select(dr.dot(hit.n, -ray.d) > 0, lit, 0)
+    seen = ~scene.ray_test(hit.spawn_ray(mi.Vector3f(-SUN)))
+    return dr.select(hit.is_valid() & seen, IRRADIANCE * lit / dr.pi, 0.0)
+
+
+def oracle_pmfs(scene, res: int, R: int, jitter: int, chunk: int = 64) -> np.ndarray:
+    """Per pixel, the integrand's mean over each of the R² cells (pixels, R²)."""
+    import mitsuba as mi
+    from mcillum.integrators import guided_path as gp
+    cells = R * R
+    per = cells * jitter * jitter
+    c = np.repeat(np.arange(cells), jitter * jitter)
+    j = (np.arange(jitter) + 0.5) / jitter
+    jx, jy = np.tile(np.repeat(j, jitter), cells), np.tile(np.tile(j, jitter), cells)
+    u = ((c % R) + jx) / R, ((c // R) + jy) / R
+    out = np.zeros((res * res, cells))
+    x, y = np.meshgrid((np.arange(res) + 0.5) / res, (np.arange(res) + 0.5) / res)
+    x, y = x.ravel(), y.ravel()
+    for p0 in range(0, res * res, chunk):
+        px, py = x[p0:p0 + chunk], y[p0:p0 + chunk]
+        ray, _ = scene.sensors()[0].sample_ray(
+            0, 0.5, mi.Point2f(np.repeat(px, per), np.repeat(py, per)), mi.Point2f(0.5))
+        si = scene.ray_intersect(ray)
+        square = mi.Point2f(np.tile(u[0], len(px)), np.tile(u[1], len(px)))
+        w = gp.from_guide(si, mi.warp.square_to_cosine_hemisphere(square))
+        L = np.array(patch_radiance(scene, si, w))
+        out[p0:p0 + chunk] = L.reshape(len(px), cells, jitter * jitter).mean(axis=2)
+    return out
+
+
+def evaluate(scene, res: int, n: int, R: int, pmf: np.ndarray, alpha: np.ndarray,
+             seed: int) -> tuple[float, float]:
+    """(relative variance of one sample, share reaching the patch) of the
+    mixture α·cosine + (1 − α)·pmf (per pixel: ``pmf`` (pixels, R²), ``alpha``
+    (pixels,))."""
+    import mitsuba as mi
+    from mcillum.integrators import guided_path as gp
+    rng = np.random.default_rng(seed)
+    pixels = res * res
+    cdf = np.cumsum(pmf, axis=1)
+    cdf /= cdf[:, -1:]
+    cell = np.stack([np.searchsorted(cdf[i], rng.random(n)) for i in range(pixels)])
+    cell = cell.clip(0, R * R - 1)
+    bsdf = rng.random((pixels, n)) < alpha[:, None]
+    ux = np.where(bsdf, rng.random((pixels, n)), ((cell % R) + rng.random((pixels, n))) / R)
+    uy = np.where(bsdf, rng.random((pixels, n)), ((cell // R) + rng.random((pixels, n))) / R)
+    square = mi.Point2f(ux.ravel(), uy.ravel())
+    local = mi.warp.square_to_cosine_hemisphere(square)
+    si = first_hits(scene, res, n)
+    L = np.array(patch_radiance(scene, si, gp.from_guide(si, local))).reshape(pixels, n)
+    drawn = np.array(gp.square_cell(square, R)).reshape(pixels, n)
+    p_guide = np.take_along_axis(pmf, drawn, axis=1) * R * R
+    # (densities over cos θ/π: the cosine warp's factor cancels in f/p)
+    p = alpha[:, None] + (1 - alpha[:, None]) * p_guide
+    x = L / p
+    valid = np.array(si.is_valid()).reshape(pixels, n)[:, 0]
+    mean, var = x.mean(axis=1)[valid], x.var(axis=1)[valid]
+    return float(var.sum() / np.sum(mean ** 2)), float(np.mean(L[valid] > 0))
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--res", type=int, default=64)
+    parser.add_argument("--spp", type=int, default=1024, help="guided_path's training render")
+    parser.add_argument("--samples", type=int, default=512, help="directions per pixel")
+    parser.add_argument("--directional-res", type=int, nargs="+", default=[32],
+                        help="the oracles' R")
+    parser.add_argument("--jitter", type=int, default=2)
+    parser.add_argument("-p", dest="params", action="append", default=[],
+                        help="guided_path property, key=value (repeatable)")
+    args = parser.parse_args(argv)
+    renders.set_variant("llvm_ad_rgb")
+    from mcillum.integrators import guide as guide_mod
+
+    scene = renders.load_scene(scenes.path("sunlit_room"), res=args.res, gap="hole",
+                               sun=IRRADIANCE)
+    learned = {}
+    learn = guide_mod.Guide.learn.__func__
+
+    def keep(cls, *a, **k):             # (the render's last guide, for the table)
+        learned["guide"] = learn(cls, *a, **k)
+        return learned["guide"]
+
+    guide_mod.Guide.learn = classmethod(keep)
+    params = {"max_depth": 3, **{k: ast.literal_eval(v) for k, v in
+                                 (p.split("=", 1) for p in args.params)}}
+    integrator = renders.make_integrator("guided_path", params)
+    renders.render(scene, integrator, args.spp, seed=1)
+    guide_mod.Guide.learn = classmethod(learn)
+    g, share = learned["guide"], integrator.bsdf_fraction
+    pixels = args.res * args.res
+    grid = guide_mod.grid_of(scene.bbox())
+    hits = first_hits(scene, args.res, 1)
+    node = g.voxel_node[np.array(guide_mod.voxel_of(hits.p, grid))]
+    alpha = np.where(g.trained[node], guide_mod.mixture_share(share, g.indirect[node]), 1.0)
+    tables = guide_mod.guide_tables(g.pmf[np.flatnonzero(g.child == 0)])
+    leaf_row = np.cumsum(g.child == 0) - 1
+    quantized = tables["pmf"].reshape(-1, g.res * g.res)[leaf_row[node]]
+    rows = [("cosine", 1, np.full((pixels, 1), 1.0), np.ones(pixels)),
+            (f"learned ({g.leaves} leaves)", g.res, quantized, alpha)]
+    for R in args.directional_res:
+        means = oracle_pmfs(scene, args.res, R, args.jitter)
+        norm = means / np.maximum(means.sum(axis=1, keepdims=True), 1e-30)
+        by_leaf = np.zeros((g.child.size, R * R))
+        np.add.at(by_leaf, node, norm)
+        for name, m in (("oracle point", means), ("oracle leaf", by_leaf[node])):
+            total = m.sum(axis=1, keepdims=True)
+            pmf = np.where(total > 0, (1 - guide_mod.FLOOR) * m / np.maximum(total, 1e-30)
+                           + guide_mod.FLOOR / (R * R), 1.0 / (R * R))
+            rows.append((f"{name}, R = {R}", R, pmf, np.full(pixels, share)))
+    print("| strategy | cells | relative variance of one sample | share reaching the patch |")
+    print("|---|---|---|---|")
+    for name, R, pmf, a in rows:
+        rel, reach = evaluate(scene, args.res, args.samples, R, pmf, a, seed=7)
+        print(f"| {name} | {R}² | {rel:.1f} | {reach:.4f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
