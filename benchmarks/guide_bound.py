@@ -89,10 +89,13 @@ def oracle_pmfs(scene, res: int, R: int, jitter: int, chunk: int = 64) -> np.nda
 
 
 def evaluate(scene, res: int, n: int, R: int, pmf: np.ndarray, alpha: np.ndarray,
-             seed: int) -> tuple[float, float]:
+             seed: int, anchor=None) -> tuple[float, float]:
     """(relative variance of one sample, share reaching the patch) of the
     mixture α·cosine + (1 − α)·pmf (per pixel: ``pmf`` (pixels, R²), ``alpha``
-    (pixels,))."""
+    (pixels,)); ``anchor`` (per pixel its anchor (pixels, 3) and learned
+    distance (pixels,)) draws the pmf's cells as seen from the anchor, as
+    guided_path does (None: from the point)."""
+    import drjit as dr
     import mitsuba as mi
     from mcillum.integrators import guided_path as gp
     rng = np.random.default_rng(seed)
@@ -101,18 +104,27 @@ def evaluate(scene, res: int, n: int, R: int, pmf: np.ndarray, alpha: np.ndarray
     cdf /= cdf[:, -1:]
     cell = np.stack([np.searchsorted(cdf[i], rng.random(n)) for i in range(pixels)])
     cell = cell.clip(0, R * R - 1)
-    bsdf = rng.random((pixels, n)) < alpha[:, None]
-    ux = np.where(bsdf, rng.random((pixels, n)), ((cell % R) + rng.random((pixels, n))) / R)
-    uy = np.where(bsdf, rng.random((pixels, n)), ((cell // R) + rng.random((pixels, n))) / R)
-    square = mi.Point2f(ux.ravel(), uy.ravel())
-    local = mi.warp.square_to_cosine_hemisphere(square)
+    bsdf = (rng.random((pixels, n)) < alpha[:, None]).ravel()
+    ux = np.where(bsdf, rng.random(pixels * n), ((cell.ravel() % R) + rng.random(pixels * n)) / R)
+    uy = np.where(bsdf, rng.random(pixels * n), ((cell.ravel() // R) + rng.random(pixels * n)) / R)
     si = first_hits(scene, res, n)
-    L = np.array(patch_radiance(scene, si, gp.from_guide(si, local))).reshape(pixels, n)
-    drawn = np.array(gp.square_cell(square, R)).reshape(pixels, n)
-    p_guide = np.take_along_axis(pmf, drawn, axis=1) * R * R
-    # (densities over cos θ/π: the cosine warp's factor cancels in f/p)
-    p = alpha[:, None] + (1 - alpha[:, None]) * p_guide
-    x = L / p
+    centre = np.zeros((pixels, 3)) if anchor is None else anchor[0]
+    distance = np.zeros(pixels) if anchor is None else anchor[1]
+    c = mi.Point3f(*[np.repeat(centre[:, k], n) for k in range(3)])
+    d = mi.Float(np.repeat(distance, n))
+    drawn = gp.from_guide(si, mi.warp.square_to_cosine_hemisphere(mi.Point2f(ux, uy)))
+    w = dr.select(mi.Bool(bsdf), drawn, gp.from_anchor(si.p, drawn, c, d))
+    w_c, jacobian = gp.to_anchor(si.p, w, c, d)
+    local = gp.to_guide(si, w_c)
+    at = np.array(gp.square_cell(mi.warp.cosine_hemisphere_to_square(local), R))
+    pmf_at = pmf.ravel()[np.repeat(np.arange(pixels), n) * R * R + at]
+    cos_x = np.maximum(np.array(gp.to_guide(si, w).z), 0)
+    p_guide = pmf_at * R * R * np.maximum(np.array(local.z), 0) * np.array(jacobian)
+    a = np.repeat(alpha, n)
+    p = a * cos_x + (1 - a) * p_guide                 # (both over 1/π)
+    L = np.array(patch_radiance(scene, si, w))
+    x = np.where(p > 0, L * cos_x / np.maximum(p, 1e-30), 0).reshape(pixels, n)
+    L = L.reshape(pixels, n)
     valid = np.array(si.is_valid()).reshape(pixels, n)[:, 0]
     mean, var = x.mean(axis=1)[valid], x.var(axis=1)[valid]
     return float(var.sum() / np.sum(mean ** 2)), float(np.mean(L[valid] > 0))
@@ -156,8 +168,12 @@ def main(argv=None) -> None:
     tables = guide_mod.guide_tables(g.pmf[np.flatnonzero(g.child == 0)])
     leaf_row = np.cumsum(g.child == 0) - 1
     quantized = tables["pmf"].reshape(-1, g.res * g.res)[leaf_row[node]]
-    rows = [("cosine", 1, np.full((pixels, 1), 1.0), np.ones(pixels)),
-            (f"learned ({g.leaves} leaves)", g.res, quantized, alpha)]
+    from mcillum.integrators import guided_path as gp
+    at = guide_mod.on_plane(guide_mod.anchor_of(hits.p, grid), hits.p, gp.guide_frame(hits).n)
+    centre = np.array(at).T.reshape(pixels, 3)
+    anchors = (centre, g.distance[node])
+    rows = [("cosine", 1, np.full((pixels, 1), 1.0), np.ones(pixels), None),
+            (f"learned ({g.leaves} leaves)", g.res, quantized, alpha, anchors)]
     for R in args.directional_res:
         means = oracle_pmfs(scene, args.res, R, args.jitter)
         norm = means / np.maximum(means.sum(axis=1, keepdims=True), 1e-30)
@@ -167,11 +183,11 @@ def main(argv=None) -> None:
             total = m.sum(axis=1, keepdims=True)
             pmf = np.where(total > 0, (1 - guide_mod.FLOOR) * m / np.maximum(total, 1e-30)
                            + guide_mod.FLOOR / (R * R), 1.0 / (R * R))
-            rows.append((f"{name}, R = {R}", R, pmf, np.full(pixels, share)))
+            rows.append((f"{name}, R = {R}", R, pmf, np.full(pixels, share), None))
     print("| strategy | cells | relative variance of one sample | share reaching the patch |")
     print("|---|---|---|---|")
-    for name, R, pmf, a in rows:
-        rel, reach = evaluate(scene, args.res, args.samples, R, pmf, a, seed=7)
+    for name, R, pmf, a, anchor in rows:
+        rel, reach = evaluate(scene, args.res, args.samples, R, pmf, a, seed=7, anchor=anchor)
         print(f"| {name} | {R}² | {rel:.1f} | {reach:.4f} |", flush=True)
 
 

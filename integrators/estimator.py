@@ -300,6 +300,7 @@ class IlluminationEstimator(mi.SamplingIntegrator):
         ray = mi.Ray3f(ray)
         L = mi.Spectrum(0)                 # radiance accumulated so far
         β = mi.Spectrum(1)                 # path throughput ∏ f cos θ / p
+        β_rr = mi.Spectrum(1)              # ... as Russian roulette reads it
         depth = mi.UInt32(0)               # index of the current vertex
         active = mi.Bool(active)
 
@@ -331,7 +332,7 @@ class IlluminationEstimator(mi.SamplingIntegrator):
                 w_hit = self.hit_weight(scene, si, prev_si, prev_pdf, prev_delta)
                 L += β * w_hit * emitter.eval(si, visible)
             if dr.hint(self.records_paths, mode='scalar'):
-                self.record_emission(lane, depth, L, active)
+                self.record_emission(lane, depth, si, L, active)
 
             valid_ray |= active & si.is_valid()
 
@@ -352,6 +353,7 @@ class IlluminationEstimator(mi.SamplingIntegrator):
                 wo, weight, pdf, delta, eta = self.sample_direction(
                     scene, sampler, si, bsdf, bsdf_ctx)
                 β *= weight
+                β_rr *= self.roulette_weight(si, bsdf, bsdf_ctx, wo, weight, pdf)
                 η *= eta
                 prev_si = mi.Interaction3f(si)
                 prev_pdf = pdf
@@ -364,12 +366,13 @@ class IlluminationEstimator(mi.SamplingIntegrator):
 
             depth = dr.select(si.is_valid(), depth + 1, depth)
 
-            # Russian roulette exactly as `path`: survive with min(max β·η², .95)
+            # Russian roulette as `path`: survive with min(max β_rr·η², .95)
             β_max = dr.max(mi.unpolarized_spectrum(β))
-            rr_prob = dr.minimum(β_max * dr.square(η), 0.95)
+            rr_prob = dr.minimum(dr.max(mi.unpolarized_spectrum(β_rr)) * dr.square(η), 0.95)
             rr_active = depth >= self.rr_depth
             rr_continue = sampler.next_1d(active_next) < rr_prob
             β = dr.select(rr_active, β * dr.rcp(rr_prob), β)
+            β_rr = dr.select(rr_active, β_rr * dr.rcp(rr_prob), β_rr)
 
             active = active_next & ((depth < self.rr_depth) | rr_continue) & (β_max != 0)
             pi = scene.ray_intersect_preliminary(ray, coherent=False, active=active)
@@ -419,6 +422,14 @@ class IlluminationEstimator(mi.SamplingIntegrator):
             w = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, p_cont))
         return dr.select(active_em & (ds.pdf != 0), f_cos * em_weight * w, 0)
 
+    def roulette_weight(self, si, bsdf, ctx, wo, weight, pdf):
+        """The factor by which the throughput Russian roulette reads (β_rr)
+        grows at a continuation ``wo`` (local) of density ``pdf`` and weight
+        f cos/p: the weight itself by default (β_rr = β, as `path`). Any
+        β_rr > 0 leaves the image unbiased: β is divided by the survival
+        probability it sets."""
+        return weight
+
     def continuation_pdf(self, si, bsdf, wo_world, bsdf_pdf):
         """Density of :meth:`sample_direction` at world direction ``wo_world``
         for the MIS weight of an emitter sample; ``bsdf_pdf`` is the BSDF's
@@ -436,9 +447,10 @@ class IlluminationEstimator(mi.SamplingIntegrator):
         the throughput β after it and the radiance L gathered before it."""
         raise NotImplementedError
 
-    def record_emission(self, lane, depth, L, active):
+    def record_emission(self, lane, depth, si, L, active):
         """The radiance gathered once the emission the last continuation hit
-        is added (vertex ``depth`` - 1's direct light by that route)."""
+        is added (vertex ``depth`` - 1's direct light by that route), and
+        where that continuation ended: ``si`` (invalid where it escaped)."""
         raise NotImplementedError
 
     def record_path(self, lane, L):

@@ -1,8 +1,9 @@
 """What `guided_path` learns, and the tables it samples from: a binary tree
 over the scene's bounds with a learned pmf per node (over the res² cells of
-the cosine-warped square, means taken over a refining quadtree), the
-training records its paths leave, and each pmf quantized to
-equal-probability slots so that a sample costs one gather.
+the cosine-warped square, means taken over a refining quadtree, of the
+directions from fixed anchors to where the records' light came from) and
+the distance of that light, the training records its paths leave, and each
+pmf quantized to equal-probability slots so that a sample costs one gather.
 
 The sampling routine, its density and its inverse (``sample_guide``,
 ``guide_pdf``, ``invert_guide``) are in guided_path.py beside the plugin;
@@ -89,6 +90,42 @@ def voxel_of(p: mi.Point3f, grid) -> mi.UInt32:
     return i[0] + GRID * (i[1] + GRID * i[2])
 
 
+# Parallax: a vertex sees its leaf's learned light from the centre of its
+# anchor block (ANCHOR³ voxels, fixed, whatever the tree), as if that light
+# lay on a sphere about the centre at the leaf's distance (guided_path's
+# to_anchor/from_anchor). Records learn the direction from the anchor to
+# the point their continuation hit, so that a small source seen from all
+# over a leaf falls into the same cells.
+ANCHOR = 8
+FAR = 1e4                  # (× the scene's size: where an escaped record's light is)
+
+
+def anchor_of(p: mi.Point3f, grid) -> mi.Point3f:
+    """Centre of the anchor block that holds ``p``."""
+    lo, scale = grid
+    i = [dr.minimum(mi.UInt32(dr.maximum((p[k] - float(lo[k])) * float(scale[k]), 0)),
+                    GRID - 1) for k in range(3)]
+    return _block_centre(i, grid)
+
+
+def anchor_of_voxel(voxel: mi.UInt32, grid) -> mi.Point3f:
+    """Centre of the anchor block of voxel index ``voxel`` (as :func:`voxel_of`)."""
+    return _block_centre([voxel % GRID, (voxel // GRID) % GRID, voxel // (GRID * GRID)], grid)
+
+
+def on_plane(c: mi.Point3f, x: mi.Point3f, n: mi.Vector3f) -> mi.Point3f:
+    """The anchor ``c`` moved onto the tangent plane of ``x`` (normal ``n``):
+    seen from there, a surface's horizon is its own, so light near the
+    plane of a wall stays on the side it lies."""
+    return c - n * dr.dot(c - x, n)
+
+
+def _block_centre(i, grid) -> mi.Point3f:
+    lo, scale = grid
+    return mi.Point3f(*[float(lo[k]) + (mi.Float(i[k] // ANCHOR * ANCHOR) + 0.5 * ANCHOR)
+                        / float(scale[k]) for k in range(3)])
+
+
 TRAIN_DEPTH = 8            # vertices of a training path that are recorded
 PASSES = 2                 # training passes at most, by default (each traces the kernel)
 #: Share of a render's samples that train, by default. With the training
@@ -146,6 +183,7 @@ class Guide:
         self.pmf = np.full((1, res * res), 1.0 / (res * res))
         self.trained = np.zeros(1, bool)
         self.indirect = np.zeros(1)              # share of the light arriving indirectly
+        self.distance = np.zeros(1)              # of its light from the anchors (0: far)
         # per node and cell the records' count, Σ L_i and Σ L_i² (None: not learned)
         self.counts = self.sums = self.squares = None
         self.voxel_node = np.zeros(GRID ** 3, np.int64)   # leaf of every voxel: the root
@@ -208,16 +246,34 @@ class Guide:
         pmf = (1 - FLOOR) * means / np.maximum(means.sum(axis=1, keepdims=True), 1e-30) \
             + FLOOR / nb
         indirect = total.sum(axis=1) / np.maximum(total.sum(axis=1) + direct, 1e-30)
+        distance = g._distances(tally)
         g.pmf, g.trained, g.indirect = np.repeat(g.pmf, nodes, axis=0), np.zeros(nodes, bool), \
             np.zeros(nodes)
+        g.distance = np.zeros(nodes)
         parent = g.parents()
         for k in range(nodes):               # (breadth first: a parent before its children)
             if own[k]:
                 g.pmf[k], g.trained[k], g.indirect[k] = pmf[k], True, indirect[k]
+                g.distance[k] = distance[k]
             elif k:
-                g.pmf[k], g.trained[k], g.indirect[k] = (g.pmf[parent[k]], g.trained[parent[k]],
-                                                         g.indirect[parent[k]])
+                p = parent[k]
+                g.pmf[k], g.trained[k], g.indirect[k] = g.pmf[p], g.trained[p], g.indirect[p]
+                g.distance[k] = g.distance[p]
         return g
+
+    def _distances(self, tally: Tally) -> np.ndarray:
+        """Per node, the distance of its records' light from their anchors:
+        Σ L_i / Σ (L_i / distance), a harmonic mean that the near light
+        sets (0 where all came from afar: no parallax)."""
+        nodes = len(self.child)
+        light, near = (np.bincount(self.voxel_node, weights=a, minlength=nodes)
+                       for a in (tally.voxel_light, tally.voxel_near))
+        for k in reversed(range(nodes)):     # (an inner node's sums are its children's)
+            first = int(self.child[k])
+            if first:
+                light[k] = light[first] + light[first + 1]
+                near[k] = near[first] + near[first + 1]
+        return np.where(near > 0, light / np.maximum(near, 1e-30), 0.0)
 
     def _grow(self, counts, threshold: float):
         """Split the root breadth first by the records per voxel ``counts``."""
@@ -307,15 +363,16 @@ class Guide:
     def device(self, bsdf_fraction: float) -> dict:
         """The arrays :meth:`GuidedPathIntegrator.sample` reads, as the
         variant's types (numpy in scalar variants): the leaves' quantized
-        pmfs and slot tables (:func:`guide_tables`), their BSDF shares, and
-        the leaf of every voxel."""
+        pmfs and slot tables (:func:`guide_tables`), their BSDF shares and
+        light's distances, and the leaf of every voxel."""
         leaves = np.flatnonzero(self.child == 0)
         row = np.zeros(len(self.child), np.int64)
         row[leaves] = np.arange(len(leaves))
         alpha = np.where(self.trained[leaves], mixture_share(bsdf_fraction, self.indirect[leaves]),
                          1.0).astype(np.float32)
         leaf = row[self.voxel_node].astype(np.uint32)
-        arrays = {"leaf": leaf, "alpha": alpha, **guide_tables(self.pmf[leaves])}
+        arrays = {"leaf": leaf, "alpha": alpha, **guide_tables(self.pmf[leaves]),
+                  "distance": self.distance[leaves].astype(np.float32)}
         if not dr.is_jit_v(mi.Float):
             return arrays
         out = {k: owned(v) for k, v in arrays.items()}
@@ -410,10 +467,12 @@ def _pyramid(a: np.ndarray) -> dict[int, np.ndarray]:
 
 class Tally:
     """A render's training records, as :meth:`Guide.learn` reads them: per
-    voxel the records' count (which grows the tree) and, per node of a
-    tree and cell of the res² square, their count, Σ L_i and Σ L_i², and
-    per node Σ L_d (:meth:`node_sums`). Its tree never splits a voxel, so
-    records summed per voxel and cell serve any tree: the records are kept
+    voxel the records' count (which grows the tree), Σ L_i and Σ L_i /
+    distance (their light's distance) and, per node of a tree and cell of
+    the res² square, their count, Σ L_i and Σ L_i², and per node Σ L_d
+    (:meth:`node_sums`). Its tree never splits a voxel, and a record's cell
+    is taken from its voxel's anchor, whatever the tree, so records summed
+    per voxel and cell serve any tree: the records are kept
     as they come while they are fewer than the voxels' cells, and folded
     into such sums once they outnumber them, so that a long training's
     memory stays bounded (24 bytes per cell of a voxel a record fell in,
@@ -428,6 +487,8 @@ class Tally:
         self.res = res
         self.records = 0
         self.voxel_counts = np.zeros(GRID ** 3)        # records per voxel
+        # per voxel Σ L_i and Σ L_i / distance: the distance of its light
+        self.voxel_light, self.voxel_near = np.zeros(GRID ** 3), np.zeros(GRID ** 3)
         self._kept = []                                # (voxel, cell, L_i, L_d) not yet folded
         self._kept_records = 0
         # the folded sums: per row (a voxel) and cell (count, Σ L_i, Σ L_i²),
@@ -437,12 +498,17 @@ class Tally:
         self._sums = np.zeros((3, 0, res * res))
         self._direct = np.zeros(0)
 
-    def add(self, voxel, cell, li, ld) -> None:
+    def add(self, voxel, cell, li, ld, distance=None) -> None:
         """Add records (:meth:`Records.learned`): per record its voxel, its
-        direction's cell, L_i and L_d."""
+        direction's cell, L_i, L_d and the distance of its light from the
+        voxel's anchor (None: far)."""
         if not len(voxel):
             return
         self.voxel_counts += np.bincount(voxel, minlength=GRID ** 3)
+        self.voxel_light += np.bincount(voxel, weights=li, minlength=GRID ** 3)
+        if distance is not None:
+            self.voxel_near += np.bincount(voxel, weights=li / np.maximum(distance, 1e-30),
+                                           minlength=GRID ** 3)
         self.records += len(voxel)
         self._kept.append((voxel, cell, li, ld))
         self._kept_records += len(voxel)
@@ -501,56 +567,64 @@ def _sum_by(sums, direct, index, cell, li, ld) -> None:
 
 class Records:
     """What the training paths of one render leave: per vertex its voxel,
-    its direction's cell of the guide's square, the throughput after it, the
-    radiance gathered before its continuation and after the emission the
-    continuation hit; per path its radiance (radiance and
-    throughput as their mean over the channels: only learning reads them).
-    Device buffers in JIT variants, lists in scalar ones."""
+    the point its continuation hit (far along it where it escaped), the
+    normal of its guide frame, the throughput after it, the radiance
+    gathered before its continuation and after the emission the
+    continuation hit; per path its radiance (radiance and throughput as
+    their mean over the channels: only learning reads them). Device buffers
+    in JIT variants, lists in scalar ones."""
 
     def __init__(self, lanes: int, depth: int):
         self.lanes, self.depth = lanes, depth
         if dr.is_jit_v(mi.Float):
             n = lanes * depth
             self.voxel = dr.zeros(mi.UInt32, n)         # voxel + 1; 0: none
-            self.cell = dr.zeros(mi.UInt32, n)
             self.beta, self.L = dr.zeros(mi.Float, n), dr.zeros(mi.Float, n)
             self.hit = dr.zeros(mi.Float, n)
             self.path = dr.zeros(mi.Float, lanes)
+            self.x = [dr.zeros(mi.Float, n) for _ in range(3)]    # the vertex
+            self.y = [dr.zeros(mi.Float, n) for _ in range(3)]    # the point hit
+            self.g = [dr.zeros(mi.Float, n) for _ in range(3)]    # the frame's normal
         else:
             self.rows, self.path_L, self.lanes_taken = {}, {}, itertools.count()
 
     #: The device arrays a training pass scatters into, in order.
-    FIELDS = ("voxel", "cell", "beta", "L", "hit", "path")
+    FIELDS = ("voxel", "beta", "L", "hit", "path", "x", "y", "g")
 
     def arrays(self) -> tuple:
-        """The device arrays of :attr:`FIELDS` (JIT variants)."""
-        return tuple(getattr(self, f) for f in self.FIELDS)
+        """The device arrays of :attr:`FIELDS` (JIT variants), flat."""
+        out = []
+        for f in self.FIELDS:
+            a = getattr(self, f)
+            out += a if isinstance(a, list) else [a]
+        return tuple(out)
 
     def hold(self, arrays) -> None:
         """Make ``arrays`` (as :meth:`arrays` returns them) these records'."""
-        for f, a in zip(self.FIELDS, arrays):
-            setattr(self, f, a)
+        arrays = list(arrays)
+        for f in self.FIELDS:
+            if isinstance(getattr(self, f), list):
+                setattr(self, f, arrays[:3])
+                del arrays[:3]
+            else:
+                setattr(self, f, arrays.pop(0))
 
-    def learned(self):
-        """(voxel, cell, L_i, L_d) as numpy, one row per vertex whose path
-        went on (β > 0: where f = 0 the path died and L_i is unknown), each
-        over the throughput after the vertex (which includes f cos/p). L_i is
-        the radiance the path gathered after the emission its continuation
-        hit: the light that arrives indirectly. L_d is that emission,
-        MIS-weighted as the path added it: the continuation's share of the
-        direct light."""
-        none = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0))
+    def learned(self, grid, res: int, parallax: bool = True):
+        """(voxel, cell, L_i, L_d, distance) as numpy, one row per vertex whose
+        path went on (β > 0: where f = 0 the path died and L_i is unknown),
+        each over the throughput after the vertex (which includes f cos/p).
+        The cell is that of the direction from the vertex's anchor
+        (:func:`anchor_of`) to the point its continuation hit, in its guide
+        frame; a vertex whose hit point lies below that frame's horizon seen
+        from the anchor is left out. The distance is the anchor's to that
+        point. L_i is the radiance the path gathered after the emission its
+        continuation hit: the light that arrives indirectly. L_d is that
+        emission, MIS-weighted as the path added it: the continuation's share
+        of the direct light."""
+        none = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0),
+                np.zeros(0))
         if not dr.is_jit_v(mi.Float):
-            if not self.rows:
-                return none
-            lane = np.array([k[0] for k in self.rows])
-            voxel, cell, beta, L, hit = (np.array(c) for c in zip(*self.rows.values()))
-            path = np.array([self.path_L[int(x)] for x in lane])
-            with np.errstate(divide="ignore", invalid="ignore"):
-                li, ld = np.maximum(path - hit, 0) / beta, np.maximum(hit - L, 0) / beta
-            alive = (beta > 0) & np.isfinite(li) & np.isfinite(ld)
-            return (voxel[alive].astype(np.int64), cell[alive].astype(np.int64),
-                    li[alive], ld[alive])
+            return self._learned_scalar(grid, res, parallax, none)
         # (on the device: only the rows kept cross to the host)
         i = dr.compress(self.voxel > 0)
         if dr.width(i) == 0:                  # (e.g. only delta lobes were hit)
@@ -558,10 +632,43 @@ class Records:
         beta, hit = dr.gather(mi.Float, self.beta, i), dr.gather(mi.Float, self.hit, i)
         li = dr.maximum(dr.gather(mi.Float, self.path, i // self.depth) - hit, 0) / beta
         ld = dr.maximum(hit - dr.gather(mi.Float, self.L, i), 0) / beta
-        alive = dr.compress((beta > 0) & dr.isfinite(li) & dr.isfinite(ld))
-        i = dr.gather(mi.UInt32, i, alive)
-        li, ld = dr.gather(mi.Float, li, alive), dr.gather(mi.Float, ld, alive)
-        voxel, cell = dr.gather(mi.UInt32, self.voxel, i), dr.gather(mi.UInt32, self.cell, i)
-        dr.eval(voxel, cell, li, ld)           # (one launch for the four)
-        return (np.array(voxel).astype(np.int64) - 1, np.array(cell).astype(np.int64),
-                np.array(li), np.array(ld))
+        voxel = dr.gather(mi.UInt32, self.voxel, i) - 1
+        x, y = (mi.Point3f(*[dr.gather(mi.Float, a, i) for a in b]) for b in (self.x, self.y))
+        g = mi.Vector3f(*[dr.gather(mi.Float, a, i) for a in self.g])
+        cell, dist, above = anchored_cell(voxel, x, y, g, grid, res, parallax)
+        alive = dr.compress((beta > 0) & dr.isfinite(li) & dr.isfinite(ld) & above)
+        out = [dr.gather(type(a), a, alive) for a in (voxel, cell, li, ld, dist)]
+        dr.eval(out)                           # (one launch for the five)
+        voxel, cell, li, ld, dist = (np.array(a) for a in out)
+        return voxel.astype(np.int64), cell.astype(np.int64), li, ld, dist
+
+    def _learned_scalar(self, grid, res, parallax, none):
+        if not self.rows:
+            return none
+        lane = np.array([k[0] for k in self.rows])
+        voxel, beta, L, hit, x, y, g = zip(*self.rows.values())
+        voxel, beta, L, hit = (np.array(c) for c in (voxel, beta, L, hit))
+        path = np.array([self.path_L[int(x)] for x in lane])
+        found = [anchored_cell(v, a, b, n, grid, res, parallax)
+                 for v, a, b, n in zip(voxel, x, y, g)]
+        cell, dist, above = (np.array(c) for c in zip(*found))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            li, ld = np.maximum(path - hit, 0) / beta, np.maximum(hit - L, 0) / beta
+        alive = (beta > 0) & np.isfinite(li) & np.isfinite(ld) & above.astype(bool)
+        return (voxel[alive].astype(np.int64), cell[alive].astype(np.int64), li[alive],
+                ld[alive], dist[alive].astype(float))
+
+
+def anchored_cell(voxel, x, y, g, grid, res: int, parallax: bool = True):
+    """(cell, distance, above) of the direction from the anchor of vertex
+    ``x`` (its voxel's, on its plane) to the point ``y``, in the guide frame
+    of normal ``g``: its cell of the res² square (as guided_path's
+    square_cell), the anchor's distance to ``y``, and whether it lies above
+    the frame's horizon. Without ``parallax`` the anchor is ``x`` itself."""
+    d = y - (on_plane(anchor_of_voxel(voxel, grid), x, g) if parallax else x)
+    dist = dr.norm(d)
+    w = mi.Frame3f(g).to_local(d / dr.maximum(dist, 1e-30))
+    u = mi.warp.cosine_hemisphere_to_square(w)
+    ix = dr.minimum(mi.UInt32(dr.maximum(u.x * res, 0)), res - 1)
+    iy = dr.minimum(mi.UInt32(dr.maximum(u.y * res, 0)), res - 1)
+    return iy * res + ix, dist, w.z > 0

@@ -12,41 +12,71 @@ from . import registry
 from .bsdf_sampling import sample_bsdf_direction
 from .emitter_sampling import emitter_direction_pdf, sample_emitter_direction
 from .estimator import IlluminationEstimator, over_pdf
-from .guide import (MAX_RECORDS, PASSES, PAYS_BELOW, SLOTS_PER_CELL, TRAIN_DEPTH,
-                    TRAIN_FRACTION, Guide, Records, Tally, grid_of, pass_seed, take,
-                    training_passes, voxel_of)
+from .guide import (FAR, GRID, MAX_RECORDS, PASSES, PAYS_BELOW, SLOTS_PER_CELL, TRAIN_DEPTH,
+                    TRAIN_FRACTION, Guide, Records, Tally, anchor_of, grid_of, on_plane,
+                    pass_seed, take, training_passes, voxel_of)
 
 # ----------------------------- Strategy ---------------------------------
 # The learned part is a piecewise-constant density on the unit square, warped
 # to the hemisphere by the cosine warp (Shirley-Chiu's concentric map, as
 # mi.warp.square_to_cosine_hemisphere) in a frame built from the shading
-# normal alone, on the side the path arrived from: a uniform pmf is cosine
-# sampling, and a pmf ∝ the mean L_i over each of the res² cells makes
+# normal alone, turned to the side the path arrived from: a uniform pmf is
+# cosine sampling, and a pmf ∝ the mean L_i over each of the res² cells makes
 # p ∝ L_i cos θ (the product a diffuse vertex wants). Directions on the
 # other side get density 0: the BSDF's share covers them.
 #     p(ω) = pmf[cell(ω)] · res² · cos θ / π
+# It is the density seen from the vertex's anchor c (guide.anchor_of), as
+# if the light lay on a sphere of the leaf's distance d about c: a vertex x
+# draws ω_c, then ω towards y = c + d ω_c (parallax), and
+#     p_x(ω) = p(ω_c) · t² / (d² cos θ_y),   y = x + t ω on the sphere,
+# cos θ_y the angle between ω and the sphere's normal ω_c at y.
 
 
-def guide_frame(si) -> tuple:
-    """(frame of the shading normal, side): the frame depends on the normal
-    only (Frame3f's coordinate system), so every surface of one orientation
-    in a cell shares it; side ±1 is the hemisphere of ``si.wi``."""
-    n = si.sh_frame.n
-    return mi.Frame3f(n), dr.select(si.wi.z >= 0, 1.0, -1.0)
+def guide_frame(si) -> mi.Frame3f:
+    """The frame of the shading normal turned to the side of ``si.wi``: it
+    depends on the normal and side only (Frame3f's coordinate system), so
+    every surface of one orientation in a cell shares it."""
+    return mi.Frame3f(si.sh_frame.n * dr.select(si.wi.z >= 0, 1.0, -1.0))
 
 
 def to_guide(si, w_world: mi.Vector3f) -> mi.Vector3f:
-    """World direction → the guide's frame at ``si``, mirrored so that the
-    side the path arrived from is z > 0."""
-    frame, side = guide_frame(si)
-    w = frame.to_local(w_world)
-    return mi.Vector3f(w.x, w.y, w.z * side)
+    """World direction → the guide's frame at ``si`` (the side the path
+    arrived from is z > 0)."""
+    return guide_frame(si).to_local(w_world)
 
 
 def from_guide(si, w: mi.Vector3f) -> mi.Vector3f:
     """The inverse of :func:`to_guide`."""
-    frame, side = guide_frame(si)
-    return frame.to_world(mi.Vector3f(w.x, w.y, w.z * side))
+    return guide_frame(si).to_world(w)
+
+
+def anchor_radius(x: mi.Point3f, c: mi.Point3f, d: mi.Float) -> mi.Float:
+    """Radius of the sphere about the anchor ``c`` that the vertex ``x``
+    maps through: the learned distance ``d``, at least twice x's distance
+    from c (x then lies inside it, and cos θ_y ≥ √3/2); 0 where no distance
+    was learned (ω_c = ω)."""
+    return dr.select(d > 0, dr.maximum(d, 2 * dr.norm(x - c)), 0.0)
+
+
+def from_anchor(x: mi.Point3f, w_c: mi.Vector3f, c: mi.Point3f, d: mi.Float) -> mi.Vector3f:
+    """The direction from ``x`` to the point of the sphere about ``c``
+    (:func:`anchor_radius`) in direction ``w_c`` from its centre."""
+    r = anchor_radius(x, c, d)
+    return dr.select(r > 0, dr.normalize(c + r * w_c - x), w_c)
+
+
+def to_anchor(x: mi.Point3f, w: mi.Vector3f, c: mi.Point3f, d: mi.Float) -> tuple:
+    """(ω_c, dω_c/dω): the inverse of :func:`from_anchor` and its Jacobian.
+    From x inside the sphere the ray x + t ω leaves it once: t = −b + √(b² −
+    (|o|² − r²)), o = x − c, b = ω·o."""
+    r = anchor_radius(x, c, d)
+    o = x - c
+    b = dr.dot(w, o)
+    t = -b + dr.safe_sqrt(dr.square(b) - (dr.squared_norm(o) - dr.square(r)))
+    w_c = (o + t * w) / dr.maximum(r, 1e-30)
+    jacobian = dr.square(t) / dr.maximum(dr.square(r) * dr.dot(w, w_c), 1e-30)
+    on = r > 0
+    return dr.select(on, w_c, w), dr.select(on, jacobian, 1.0)
 
 
 def square_cell(u: mi.Point2f, res: int) -> mi.UInt32:
@@ -178,6 +208,21 @@ class GuidedPathIntegrator(IlluminationEstimator):
        - |bool|
        - Average the training passes' images into the result, each weighted
          by its spp (|false|: the result is the last pass alone). (Default: |true|)
+     * - parallax
+       - |bool|
+       - Learn and draw each leaf's density as seen from an anchor (the
+         centre of the vertex's block of 8³ voxels, moved onto its tangent
+         plane), with the light on a sphere about it at the leaf's learned
+         distance, so that a small source seen from all over a leaf falls in
+         the same cells (|false|: the density is the same direction set at
+         every point of a leaf). (Default: |true|)
+     * - roulette
+       - |string|
+       - What Russian roulette reads: ``unguided``, the larger of the
+         throughput and the throughput BSDF sampling would have given the
+         same direction (a direction the learned density favours, towards
+         bright light, has a small weight *because* its light is strong);
+         ``throughput``, the throughput as ``path``. (Default: ``unguided``)
 
     Next-event estimation and the power heuristic as ``mis``; the path
     continues along a direction drawn, with probability α, from the BSDF,
@@ -195,10 +240,13 @@ class GuidedPathIntegrator(IlluminationEstimator):
     ``train_passes`` training passes of doubling spp (``train_fraction`` of
     the samples), each drawn with what the passes before it learned. Every
     path vertex records its
-    voxel (of a 32³ grid over the scene's bounds), its continuation's cell
-    and L_i along it: the radiance the path gathered after it, less the
+    voxel (of a 32³ grid over the scene's bounds), where its continuation
+    hit and L_i along it: the radiance the path gathered after it, less the
     emission the continuation hit (next-event estimation has that), over the
-    throughput. From the pooled records a binary tree splits the grid while
+    throughput. Its cell is that of the direction to the point hit from its
+    anchor (``parallax``), and the leaf learns the distance of its light
+    from the anchors (a harmonic mean weighted by L_i, so the nearest bright
+    light sets it). From the pooled records a binary tree splits the grid while
     a node holds more than ``spatial_threshold``·√R of them; each leaf's pmf is
     its cells' mean L_i, so the density is ∝ indirect L_i cos θ, with the
     means taken over a quadtree that refines where light concentrates (cells
@@ -213,6 +261,9 @@ class GuidedPathIntegrator(IlluminationEstimator):
     none of the training samples lost; its wall time includes the learning.
     Nested in another integrator (``moment``, which calls ``sample`` only)
     nothing is learned and it renders as ``mis``.
+
+    Russian roulette starts at ``rr_depth`` as ``path``'s, and reads what
+    ``roulette`` says.
 
     .. tabs::
 
@@ -253,6 +304,8 @@ class GuidedPathIntegrator(IlluminationEstimator):
         self.directional_res = int(props.get("directional_res", 32))
         self.directional_threshold = float(props.get("directional_threshold", 0.01))
         self.combine_passes = bool(props.get("combine_passes", True))
+        self.parallax = bool(props.get("parallax", True))
+        self.roulette = str(props.get("roulette", "unguided"))
         self.max_variance_ratio = float(props.get("max_variance_ratio", PAYS_BELOW))
         if not 0 < self.bsdf_fraction <= 1:
             raise ValueError(f"bsdf_fraction = {self.bsdf_fraction} is invalid: it must lie "
@@ -270,6 +323,9 @@ class GuidedPathIntegrator(IlluminationEstimator):
         if not 0 <= self.directional_threshold < 1:
             raise ValueError(f"directional_threshold = {self.directional_threshold} is "
                              "invalid: use a share of a cell's light in [0, 1), e.g. 0.01")
+        if self.roulette not in ("unguided", "throughput"):
+            raise ValueError(f"roulette = '{self.roulette}' is invalid: use 'unguided' (the "
+                             "default) or 'throughput' (as path)")
         if not self.max_variance_ratio > 0:
             raise ValueError(f"max_variance_ratio = {self.max_variance_ratio} is invalid: use "
                              "a share > 0 of BSDF sampling's variance, e.g. 0.8")
@@ -295,6 +351,7 @@ class GuidedPathIntegrator(IlluminationEstimator):
         self.check_scene(scene)
         self._guide, self.training = None, []
         self._grid = grid_of(scene.bbox())
+        self._far = FAR * max(GRID / float(k) for k in self._grid[1])   # (× the grid's size)
         pixels = int(dr.prod(sensor_.film().crop_size()))
         depth = int(min(self.max_depth, TRAIN_DEPTH))
         tally = Tally(self.directional_res)   # the records of every pass so far
@@ -355,7 +412,7 @@ class GuidedPathIntegrator(IlluminationEstimator):
             self._records, self.records_paths = Records(pixels * n, depth), True
             self._images.append(
                 (n, self._launch(scene, sensor, pass_seed(seed, 1000 + k), n, True, True)))
-            tally.add(*self._records.learned())
+            tally.add(*self._records.learned(self._grid, self.directional_res, self.parallax))
         self.records_paths = False
 
     def _launch(self, scene, sensor, seed, spp, develop, evaluate):
@@ -384,37 +441,50 @@ class GuidedPathIntegrator(IlluminationEstimator):
 
     def record_vertex(self, lane, depth, si, wo_world, pdf, delta, β, L, active):
         rec = self._records
-        # the direction's cell in the guide frame; one to the other side is not learned
-        w = to_guide(si, wo_world)
-        cell = square_cell(mi.warp.cosine_hemisphere_to_square(w), self.directional_res)
+        # one to the other side of the guide frame is not learned
+        g = guide_frame(si).n
         voxel = voxel_of(si.p, self._grid)
+        # (until the continuation hits something: far along it)
+        far = si.p + wo_world * self._far
         # (no `~` on masks: in scalar variants they are Python bools)
-        keep = dr.select(delta, False, active & (depth < rec.depth) & (pdf > 0) & (w.z > 0))
+        keep = dr.select(delta, False, active & (depth < rec.depth) & (pdf > 0)
+                         & (dr.dot(g, wo_world) > 0))
         if not dr.is_jit_v(mi.Float):
             if keep:
-                rec.rows[(lane, depth)] = [voxel, cell, dr.mean(β), dr.mean(L), dr.mean(L)]
+                rec.rows[(lane, depth)] = [voxel, dr.mean(β), dr.mean(L), dr.mean(L),
+                                           mi.Point3f(si.p), mi.Point3f(far), mi.Vector3f(g)]
             return
         i = lane * rec.depth + depth
         dr.scatter(rec.voxel, voxel + 1, i, keep)
-        dr.scatter(rec.cell, cell, i, keep)
         dr.scatter(rec.beta, dr.mean(β), i, keep)
         dr.scatter(rec.L, dr.mean(L), i, keep)
         dr.scatter(rec.hit, dr.mean(L), i, keep)       # (until an emission is hit)
+        for k in range(3):
+            dr.scatter(rec.x[k], si.p[k], i, keep)
+            dr.scatter(rec.y[k], far[k], i, keep)
+            dr.scatter(rec.g[k], g[k], i, keep)
 
-    def record_emission(self, lane, depth, L, active):
+    def record_emission(self, lane, depth, si, L, active):
         # Emission the continuation hit is direct light, which next-event
         # estimation samples too (exactly, under an importance-sampled map):
         # the density learns what arrives indirectly, so that q does not take
         # the emitter sample's MIS weight where it samples best; the direct
         # part sets the BSDF's share of the mixture (mixture_share).
+        # Where the continuation hit a surface, that point is where the
+        # vertex's light came from (parallax).
         rec = self._records
         if not dr.is_jit_v(mi.Float):
             row = rec.rows.get((lane, depth - 1)) if depth >= 1 else None
             if active and row is not None:
-                row[4] = dr.mean(L)
+                row[3] = dr.mean(L)
+                if si.is_valid():
+                    row[5] = mi.Point3f(si.p)
             return
-        dr.scatter(rec.hit, dr.mean(L), lane * rec.depth + depth - 1,
-                   active & (depth >= 1) & (depth <= rec.depth))
+        i = lane * rec.depth + depth - 1
+        here = active & (depth >= 1) & (depth <= rec.depth)
+        dr.scatter(rec.hit, dr.mean(L), i, here)
+        for k in range(3):
+            dr.scatter(rec.y[k], si.p[k], i, here & si.is_valid())
 
     def record_path(self, lane, L):
         rec = self._records
@@ -448,7 +518,9 @@ class GuidedPathIntegrator(IlluminationEstimator):
         # Either technique's direction (both drawn: the lanes pick one)
         wo_b, w_b, pdf_b, delta_b, eta_b = sample_bsdf_direction(bsdf, ctx, si, u1, u2)
         wg, _ = sample_guide(g["slot"], row, res, u1, u2)
-        wo = dr.select(from_bsdf, wo_b, si.to_local(from_guide(si, wg)))
+        c, d = self.anchor(si, row)
+        wo_g = from_anchor(si.p, from_guide(si, wg), c, d)
+        wo = dr.select(from_bsdf, wo_b, si.to_local(wo_g))
 
         # p = α p_bsdf + (1 - α) p_guide;  weight = f cos / p
         f_cos, p_bsdf = bsdf.eval_pdf(ctx, si, wo)
@@ -461,17 +533,40 @@ class GuidedPathIntegrator(IlluminationEstimator):
         eta = dr.select(from_bsdf, eta_b, 1.0)
         return wo, weight, pdf, delta, eta
 
+    def roulette_weight(self, si, bsdf, ctx, wo, weight, pdf):
+        # max(f cos / p, f cos / p_bsdf): a direction the learned density
+        # favours (towards a bright patch) has a small weight because its
+        # light is strong, and roulette on the weight killed exactly the
+        # paths that carry that light; a direction the BSDF drew keeps its
+        # own, larger weight (on f cos / p_bsdf alone its paths died as
+        # often as path's: docs/measurements.md, 2026-12-06).
+        if self._guide is None or self.roulette == "throughput":
+            return weight
+        p_bsdf = bsdf.pdf(ctx, si, wo)
+        return dr.select((pdf > p_bsdf) & (p_bsdf > 0), weight * (pdf / p_bsdf), weight)
+
     def continuation_pdf(self, si, bsdf, wo_world, bsdf_pdf):
         if self._guide is None:
             return bsdf_pdf
         alpha, row = self.mixture(si, bsdf)
         return alpha * bsdf_pdf + (1 - alpha) * self.guide_density(si, row, wo_world)
 
+    def anchor(self, si, row):
+        """(anchor, learned distance of its light) of the vertex ``si`` in
+        leaf ``row``."""
+        if not self.parallax:
+            return si.p, mi.Float(0.0)
+        c = on_plane(anchor_of(si.p, self._grid), si.p, guide_frame(si).n)
+        return c, take(self._guide["distance"], row)
+
     def guide_density(self, si, row, wo_world):
-        """The learned density at world direction ``wo_world`` (0 on the side
-        the path did not arrive from)."""
+        """The learned density at world direction ``wo_world`` (0 where its
+        direction from the anchor is on the side the path did not arrive
+        from)."""
+        c, d = self.anchor(si, row)
+        w_c, jacobian = to_anchor(si.p, wo_world, c, d)
         return guide_pdf(self._guide["pmf"], row, self.directional_res,
-                         to_guide(si, wo_world))
+                         to_guide(si, w_c)) * jacobian
 
     def to_string(self) -> str:
         return (super().to_string()[:-1] + f", bsdf_fraction={self.bsdf_fraction}, "
