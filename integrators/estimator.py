@@ -300,7 +300,6 @@ class IlluminationEstimator(mi.SamplingIntegrator):
         ray = mi.Ray3f(ray)
         L = mi.Spectrum(0)                 # radiance accumulated so far
         β = mi.Spectrum(1)                 # path throughput ∏ f cos θ / p
-        β_rr = mi.Spectrum(1)              # ... as Russian roulette reads it
         depth = mi.UInt32(0)               # index of the current vertex
         active = mi.Bool(active)
 
@@ -339,6 +338,9 @@ class IlluminationEstimator(mi.SamplingIntegrator):
             # Does the path get one more vertex?
             active_next = active & (depth + 1 < self.max_depth) & si.is_valid()
 
+            # What Russian roulette multiplies β by (1: as `path`)
+            rr_factor = mi.Float(1)
+
             if active_next:  # (masked in JIT variants, a plain branch in scalar)
                 bsdf = si.bsdf(ray)
 
@@ -353,7 +355,7 @@ class IlluminationEstimator(mi.SamplingIntegrator):
                 wo, weight, pdf, delta, eta = self.sample_direction(
                     scene, sampler, si, bsdf, bsdf_ctx)
                 β *= weight
-                β_rr *= self.roulette_weight(si, bsdf, bsdf_ctx, wo, weight, pdf)
+                rr_factor = self.roulette_factor(si, bsdf, bsdf_ctx, wo, pdf)
                 η *= eta
                 prev_si = mi.Interaction3f(si)
                 prev_pdf = pdf
@@ -366,13 +368,12 @@ class IlluminationEstimator(mi.SamplingIntegrator):
 
             depth = dr.select(si.is_valid(), depth + 1, depth)
 
-            # Russian roulette as `path`: survive with min(max β_rr·η², .95)
+            # Russian roulette as `path`: survive with min(max β·r·η², .95)
             β_max = dr.max(mi.unpolarized_spectrum(β))
-            rr_prob = dr.minimum(dr.max(mi.unpolarized_spectrum(β_rr)) * dr.square(η), 0.95)
+            rr_prob = dr.minimum(β_max * rr_factor * dr.square(η), 0.95)
             rr_active = depth >= self.rr_depth
             rr_continue = sampler.next_1d(active_next) < rr_prob
             β = dr.select(rr_active, β * dr.rcp(rr_prob), β)
-            β_rr = dr.select(rr_active, β_rr * dr.rcp(rr_prob), β_rr)
 
             active = active_next & ((depth < self.rr_depth) | rr_continue) & (β_max != 0)
             pi = scene.ray_intersect_preliminary(ray, coherent=False, active=active)
@@ -422,13 +423,12 @@ class IlluminationEstimator(mi.SamplingIntegrator):
             w = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, p_cont))
         return dr.select(active_em & (ds.pdf != 0), f_cos * em_weight * w, 0)
 
-    def roulette_weight(self, si, bsdf, ctx, wo, weight, pdf):
-        """The factor by which the throughput Russian roulette reads (β_rr)
-        grows at a continuation ``wo`` (local) of density ``pdf`` and weight
-        f cos/p: the weight itself by default (β_rr = β, as `path`). Any
-        β_rr > 0 leaves the image unbiased: β is divided by the survival
-        probability it sets."""
-        return weight
+    def roulette_factor(self, si, bsdf, ctx, wo, pdf):
+        """What Russian roulette multiplies the throughput by after a
+        continuation ``wo`` (local) of density ``pdf``: 1 by default, as
+        `path`. Any factor > 0 leaves the image unbiased: β is divided by
+        the survival probability it sets."""
+        return mi.Float(1)
 
     def continuation_pdf(self, si, bsdf, wo_world, bsdf_pdf):
         """Density of :meth:`sample_direction` at world direction ``wo_world``

@@ -662,13 +662,17 @@ class Records:
 def anchored_cell(voxel, x, y, g, grid, res: int, parallax: bool = True):
     """(cell, distance, above) of the direction from the anchor of vertex
     ``x`` (its voxel's, on its plane) to the point ``y``, in the guide frame
-    of normal ``g``: its cell of the res² square (as guided_path's
-    square_cell), the anchor's distance to ``y``, and whether it lies above
-    the frame's horizon. Without ``parallax`` the anchor is ``x`` itself."""
+    of normal ``g``: its cell of the res² square (:func:`square_cell`), the
+    anchor's distance to ``y``, and whether it lies above the frame's
+    horizon. Without ``parallax`` the anchor is ``x`` itself."""
     d = y - (on_plane(anchor_of_voxel(voxel, grid), x, g) if parallax else x)
     dist = dr.norm(d)
     w = mi.Frame3f(g).to_local(d / dr.maximum(dist, 1e-30))
-    u = mi.warp.cosine_hemisphere_to_square(w)
+    return square_cell(mi.warp.cosine_hemisphere_to_square(w), res), dist, w.z > 0
+
+
+def square_cell(u: mi.Point2f, res: int) -> mi.UInt32:
+    """Cell of square point ``u`` (row-major)."""
     ix = dr.minimum(mi.UInt32(dr.maximum(u.x * res, 0)), res - 1)
     iy = dr.minimum(mi.UInt32(dr.maximum(u.y * res, 0)), res - 1)
-    return iy * res + ix, dist, w.z > 0
+    return iy * res + ix

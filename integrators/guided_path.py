@@ -14,7 +14,7 @@ from .emitter_sampling import emitter_direction_pdf, sample_emitter_direction
 from .estimator import IlluminationEstimator, over_pdf
 from .guide import (FAR, GRID, MAX_RECORDS, PASSES, PAYS_BELOW, SLOTS_PER_CELL, TRAIN_DEPTH,
                     TRAIN_FRACTION, Guide, Records, Tally, anchor_of, grid_of, on_plane,
-                    pass_seed, take, training_passes, voxel_of)
+                    pass_seed, square_cell, take, training_passes, voxel_of)
 
 # ----------------------------- Strategy ---------------------------------
 # The learned part is a piecewise-constant density on the unit square, warped
@@ -26,9 +26,10 @@ from .guide import (FAR, GRID, MAX_RECORDS, PASSES, PAYS_BELOW, SLOTS_PER_CELL, 
 # other side get density 0: the BSDF's share covers them.
 #     p(ω) = pmf[cell(ω)] · res² · cos θ / π
 # It is the density seen from the vertex's anchor c (guide.anchor_of), as
-# if the light lay on a sphere of the leaf's distance d about c: a vertex x
-# draws ω_c, then ω towards y = c + d ω_c (parallax), and
-#     p_x(ω) = p(ω_c) · t² / (d² cos θ_y),   y = x + t ω on the sphere,
+# if the light lay on a sphere about c of radius r (the leaf's learned
+# distance, at least 2|x − c|): a vertex x draws ω_c, then ω towards
+# y = c + r ω_c (parallax), and
+#     p_x(ω) = p(ω_c) · t² / (r² cos θ_y),   y = x + t ω on the sphere,
 # cos θ_y the angle between ω and the sphere's normal ω_c at y.
 
 
@@ -77,13 +78,6 @@ def to_anchor(x: mi.Point3f, w: mi.Vector3f, c: mi.Point3f, d: mi.Float) -> tupl
     jacobian = dr.square(t) / dr.maximum(dr.square(r) * dr.dot(w, w_c), 1e-30)
     on = r > 0
     return dr.select(on, w_c, w), dr.select(on, jacobian, 1.0)
-
-
-def square_cell(u: mi.Point2f, res: int) -> mi.UInt32:
-    """Cell of square point ``u`` (row-major)."""
-    ix = dr.minimum(mi.UInt32(dr.maximum(u.x * res, 0)), res - 1)
-    iy = dr.minimum(mi.UInt32(dr.maximum(u.y * res, 0)), res - 1)
-    return iy * res + ix
 
 
 def sample_guide(slot, row, res: int, u1: mi.Float, u2: mi.Point2f):
@@ -218,11 +212,12 @@ class GuidedPathIntegrator(IlluminationEstimator):
          every point of a leaf). (Default: |true|)
      * - roulette
        - |string|
-       - What Russian roulette reads: ``unguided``, the larger of the
-         throughput and the throughput BSDF sampling would have given the
-         same direction (a direction the learned density favours, towards
-         bright light, has a small weight *because* its light is strong);
-         ``throughput``, the throughput as ``path``. (Default: ``unguided``)
+       - What Russian roulette reads: ``unguided``, the throughput with the
+         last continuation's weight the larger of its own and the one BSDF
+         sampling gives that direction (a direction the learned density
+         favours, towards bright light, has a small weight *because* its
+         light is strong); ``throughput``, the throughput, as ``path``.
+         (Default: ``unguided``)
 
     Next-event estimation and the power heuristic as ``mis``; the path
     continues along a direction drawn, with probability α, from the BSDF,
@@ -533,17 +528,19 @@ class GuidedPathIntegrator(IlluminationEstimator):
         eta = dr.select(from_bsdf, eta_b, 1.0)
         return wo, weight, pdf, delta, eta
 
-    def roulette_weight(self, si, bsdf, ctx, wo, weight, pdf):
-        # max(f cos / p, f cos / p_bsdf): a direction the learned density
-        # favours (towards a bright patch) has a small weight because its
-        # light is strong, and roulette on the weight killed exactly the
-        # paths that carry that light; a direction the BSDF drew keeps its
-        # own, larger weight (on f cos / p_bsdf alone its paths died as
-        # often as path's: docs/measurements.md, 2026-12-06).
+    def roulette_factor(self, si, bsdf, ctx, wo, pdf):
+        # max(1, p / p_bsdf): roulette reads the last continuation's weight as
+        # the larger of f cos / p and f cos / p_bsdf. A direction the learned
+        # density favours (towards a bright patch) has a small weight
+        # because its light is strong, and roulette on that weight killed
+        # exactly the paths that carried the light there; the BSDF's draws
+        # keep their own weight. Only the last step's: carried on (∏ over
+        # the path), paths ran on past the patch for 1.3× the time
+        # (docs/measurements.md, 2026-12-06).
         if self._guide is None or self.roulette == "throughput":
-            return weight
+            return mi.Float(1)
         p_bsdf = bsdf.pdf(ctx, si, wo)
-        return dr.select((pdf > p_bsdf) & (p_bsdf > 0), weight * (pdf / p_bsdf), weight)
+        return dr.select((pdf > p_bsdf) & (p_bsdf > 0), pdf / p_bsdf, 1.0)
 
     def continuation_pdf(self, si, bsdf, wo_world, bsdf_pdf):
         if self._guide is None:
