@@ -175,7 +175,8 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
     ``sg`` with the settings chosen), so κ is fitted on the held-out
     integrals, given settings or chosen: the factor that makes it predict
     the part of the error spp does not average away, the squared mean error
-    per normal (1 without a map to fit on). It is written as the AOV ``posterior_var`` (per channel; one ``Y`` channel in
+    per normal (1 without a map to fit on). It is written as the AOV
+    ``posterior_var`` (per channel; one ``Y`` channel in
     mono and spectral variants), which the film averages over the pixel's
     camera samples, beside ``sample_sq``, the film's mean of L². The pixel's
     error bar (``mcillum render`` stores it as the EXR layer

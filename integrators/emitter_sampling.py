@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import mitsuba as mi
-
 from . import registry
 from .bsdf_sampling import BSDFSamplingIntegrator
 

@@ -3,8 +3,6 @@ combined by the power heuristic (Veach 1997), as Mitsuba's `path` does."""
 
 from __future__ import annotations
 
-import mitsuba as mi
-
 from . import registry
 from .bsdf_sampling import BSDFSamplingIntegrator
 from .emitter_sampling import emitter_direction_pdf, sample_emitter_direction
