@@ -41,11 +41,17 @@ SUN = np.array([0.25, -1.0, 0.35]) / np.linalg.norm([0.25, -1.0, 0.35])   # (the
 IRRADIANCE = 500.0
 
 
-def first_hits(scene, res: int, n: int):
-    """The camera's first hits, ``n`` lanes per pixel centre (pixel major)."""
-    import mitsuba as mi
+def pixel_centres(res: int) -> tuple[np.ndarray, np.ndarray]:
+    """Film coordinates (x, y) of the res² pixel centres, row major."""
     x, y = np.meshgrid((np.arange(res) + 0.5) / res, (np.arange(res) + 0.5) / res)
-    pos = mi.Point2f(np.repeat(x.ravel(), n), np.repeat(y.ravel(), n))
+    return x.ravel(), y.ravel()
+
+
+def first_hits(scene, x: np.ndarray, y: np.ndarray, n: int):
+    """The camera's first hits at film points (x, y), ``n`` lanes per point
+    (point major)."""
+    import mitsuba as mi
+    pos = mi.Point2f(np.repeat(x, n), np.repeat(y, n))
     ray, _ = scene.sensors()[0].sample_ray(0, 0.5, pos, mi.Point2f(0.5))
     return scene.ray_intersect(ray)
 
@@ -74,13 +80,10 @@ def oracle_pmfs(scene, res: int, R: int, jitter: int, chunk: int = 64) -> np.nda
     jx, jy = np.tile(np.repeat(j, jitter), cells), np.tile(np.tile(j, jitter), cells)
     u = ((c % R) + jx) / R, ((c // R) + jy) / R
     out = np.zeros((res * res, cells))
-    x, y = np.meshgrid((np.arange(res) + 0.5) / res, (np.arange(res) + 0.5) / res)
-    x, y = x.ravel(), y.ravel()
+    x, y = pixel_centres(res)
     for p0 in range(0, res * res, chunk):
         px, py = x[p0:p0 + chunk], y[p0:p0 + chunk]
-        ray, _ = scene.sensors()[0].sample_ray(
-            0, 0.5, mi.Point2f(np.repeat(px, per), np.repeat(py, per)), mi.Point2f(0.5))
-        si = scene.ray_intersect(ray)
+        si = first_hits(scene, px, py, per)
         square = mi.Point2f(np.tile(u[0], len(px)), np.tile(u[1], len(px)))
         w = gp.from_guide(si, mi.warp.square_to_cosine_hemisphere(square))
         L = np.array(patch_radiance(scene, si, w))
@@ -107,7 +110,7 @@ def evaluate(scene, res: int, n: int, R: int, pmf: np.ndarray, alpha: np.ndarray
     bsdf = (rng.random((pixels, n)) < alpha[:, None]).ravel()
     ux = np.where(bsdf, rng.random(pixels * n), ((cell.ravel() % R) + rng.random(pixels * n)) / R)
     uy = np.where(bsdf, rng.random(pixels * n), ((cell.ravel() // R) + rng.random(pixels * n)) / R)
-    si = first_hits(scene, res, n)
+    si = first_hits(scene, *pixel_centres(res), n)
     centre = np.zeros((pixels, 3)) if anchor is None else anchor[0]
     distance = np.zeros(pixels) if anchor is None else anchor[1]
     c = mi.Point3f(*[np.repeat(centre[:, k], n) for k in range(3)])
@@ -162,16 +165,18 @@ def main(argv=None) -> None:
     g, share = learned["guide"], integrator.bsdf_fraction
     pixels = args.res * args.res
     grid = guide_mod.grid_of(scene.bbox())
-    hits = first_hits(scene, args.res, 1)
+    hits = first_hits(scene, *pixel_centres(args.res), 1)
     node = g.voxel_node[np.array(guide_mod.voxel_of(hits.p, grid))]
-    alpha = np.where(g.trained[node], guide_mod.mixture_share(share, g.indirect[node]), 1.0)
-    tables = guide_mod.guide_tables(g.pmf[np.flatnonzero(g.child == 0)])
-    leaf_row = np.cumsum(g.child == 0) - 1
-    quantized = tables["pmf"].reshape(-1, g.res * g.res)[leaf_row[node]]
+    # (what the plugin samples from: each leaf's BSDF share, quantized pmf
+    # and learned distance)
+    tables = {k: np.array(v) for k, v in g.device(share).items()}
+    row = tables["leaf"][np.array(guide_mod.voxel_of(hits.p, grid))]
+    alpha = tables["alpha"][row]
+    quantized = tables["pmf"].reshape(-1, g.res * g.res)[row]
     from mcillum.integrators import guided_path as gp
     at = guide_mod.on_plane(guide_mod.anchor_of(hits.p, grid), hits.p, gp.guide_frame(hits).n)
     centre = np.array(at).T.reshape(pixels, 3)
-    anchors = (centre, g.distance[node])
+    anchors = (centre, tables["distance"][row])
     rows = [("cosine", 1, np.full((pixels, 1), 1.0), np.ones(pixels), None),
             (f"learned ({g.leaves} leaves)", g.res, quantized, alpha, anchors)]
     for R in args.directional_res:

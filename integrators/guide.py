@@ -84,10 +84,15 @@ def grid_of(bbox) -> tuple:
 
 def voxel_of(p: mi.Point3f, grid) -> mi.UInt32:
     """Voxel index of ``p`` (x fastest)."""
-    lo, scale = grid
-    i = [dr.minimum(mi.UInt32(dr.maximum((p[k] - float(lo[k])) * float(scale[k]), 0)),
-                    GRID - 1) for k in range(3)]
+    i = _voxel_coordinates(p, grid)
     return i[0] + GRID * (i[1] + GRID * i[2])
+
+
+def _voxel_coordinates(p: mi.Point3f, grid) -> list:
+    """The grid coordinates of the voxel that holds ``p`` (clamped to it)."""
+    lo, scale = grid
+    return [dr.minimum(mi.UInt32(dr.maximum((p[k] - float(lo[k])) * float(scale[k]), 0)),
+                       GRID - 1) for k in range(3)]
 
 
 # Parallax: a vertex sees its leaf's learned light from the centre of its
@@ -102,10 +107,7 @@ FAR = 1e4                  # (× the scene's size: where an escaped record's lig
 
 def anchor_of(p: mi.Point3f, grid) -> mi.Point3f:
     """Centre of the anchor block that holds ``p``."""
-    lo, scale = grid
-    i = [dr.minimum(mi.UInt32(dr.maximum((p[k] - float(lo[k])) * float(scale[k]), 0)),
-                    GRID - 1) for k in range(3)]
-    return _block_centre(i, grid)
+    return _block_centre(_voxel_coordinates(p, grid), grid)
 
 
 def anchor_of_voxel(voxel: mi.UInt32, grid) -> mi.Point3f:
@@ -233,20 +235,23 @@ class Guide:
         hits, total, squares, direct = tally.node_sums(g.voxel_node, nodes)
         if not np.any(total > 0):       # (no light arrived: no node would learn)
             return cls(res)
+        near = np.bincount(g.voxel_node, weights=tally.voxel_near, minlength=nodes)
         for k in reversed(range(nodes)):     # (an inner node's sums are its children's)
             first = int(g.child[k])
             if first:
-                hits[k] = hits[first] + hits[first + 1]
-                total[k] = total[first] + total[first + 1]
-                squares[k] = squares[first] + squares[first + 1]
-                direct[k] = direct[first] + direct[first + 1]
+                for a in (hits, total, squares, direct, near):
+                    a[k] = a[first] + a[first + 1]
         g.counts, g.sums, g.squares = hits, total, squares
-        own = (hits.sum(axis=1) >= MIN_TRAINED) & (total.sum(axis=1) > 0)
+        light = total.sum(axis=1)
+        own = (hits.sum(axis=1) >= MIN_TRAINED) & (light > 0)
         means = refined_means(hits, total, res, refine)
         pmf = (1 - FLOOR) * means / np.maximum(means.sum(axis=1, keepdims=True), 1e-30) \
             + FLOOR / nb
-        indirect = total.sum(axis=1) / np.maximum(total.sum(axis=1) + direct, 1e-30)
-        distance = g._distances(tally)
+        indirect = light / np.maximum(light + direct, 1e-30)
+        # the distance of a node's light from its anchors: Σ L_i / Σ (L_i /
+        # distance), a harmonic mean that the near light sets (0 where all
+        # came from afar: no parallax)
+        distance = np.where(near > 0, light / np.maximum(near, 1e-30), 0.0)
         g.pmf, g.trained, g.indirect = np.repeat(g.pmf, nodes, axis=0), np.zeros(nodes, bool), \
             np.zeros(nodes)
         g.distance = np.zeros(nodes)
@@ -260,20 +265,6 @@ class Guide:
                 g.pmf[k], g.trained[k], g.indirect[k] = g.pmf[p], g.trained[p], g.indirect[p]
                 g.distance[k] = g.distance[p]
         return g
-
-    def _distances(self, tally: Tally) -> np.ndarray:
-        """Per node, the distance of its records' light from their anchors:
-        Σ L_i / Σ (L_i / distance), a harmonic mean that the near light
-        sets (0 where all came from afar: no parallax)."""
-        nodes = len(self.child)
-        light, near = (np.bincount(self.voxel_node, weights=a, minlength=nodes)
-                       for a in (tally.voxel_light, tally.voxel_near))
-        for k in reversed(range(nodes)):     # (an inner node's sums are its children's)
-            first = int(self.child[k])
-            if first:
-                light[k] = light[first] + light[first + 1]
-                near[k] = near[first] + near[first + 1]
-        return np.where(near > 0, light / np.maximum(near, 1e-30), 0.0)
 
     def _grow(self, counts, threshold: float):
         """Split the root breadth first by the records per voxel ``counts``."""
@@ -467,8 +458,8 @@ def _pyramid(a: np.ndarray) -> dict[int, np.ndarray]:
 
 class Tally:
     """A render's training records, as :meth:`Guide.learn` reads them: per
-    voxel the records' count (which grows the tree), Σ L_i and Σ L_i /
-    distance (their light's distance) and, per node of a tree and cell of
+    voxel the records' count (which grows the tree) and Σ L_i / distance
+    (with Σ L_i, their light's distance) and, per node of a tree and cell of
     the res² square, their count, Σ L_i and Σ L_i², and per node Σ L_d
     (:meth:`node_sums`). Its tree never splits a voxel, and a record's cell
     is taken from its voxel's anchor, whatever the tree, so records summed
@@ -487,8 +478,8 @@ class Tally:
         self.res = res
         self.records = 0
         self.voxel_counts = np.zeros(GRID ** 3)        # records per voxel
-        # per voxel Σ L_i and Σ L_i / distance: the distance of its light
-        self.voxel_light, self.voxel_near = np.zeros(GRID ** 3), np.zeros(GRID ** 3)
+        # per voxel Σ L_i / distance: with Σ L_i, the distance of its light
+        self.voxel_near = np.zeros(GRID ** 3)
         self._kept = []                                # (voxel, cell, L_i, L_d) not yet folded
         self._kept_records = 0
         # the folded sums: per row (a voxel) and cell (count, Σ L_i, Σ L_i²),
@@ -505,7 +496,6 @@ class Tally:
         if not len(voxel):
             return
         self.voxel_counts += np.bincount(voxel, minlength=GRID ** 3)
-        self.voxel_light += np.bincount(voxel, weights=li, minlength=GRID ** 3)
         if distance is not None:
             self.voxel_near += np.bincount(voxel, weights=li / np.maximum(distance, 1e-30),
                                            minlength=GRID ** 3)
