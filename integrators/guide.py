@@ -138,8 +138,10 @@ PASSES = 2                 # training passes at most, by default (each traces th
 TRAIN_FRACTION = 0.125
 #: Guiding goes on while the learned mixture is predicted to leave at most
 #: this share of BSDF sampling's variance of the indirect light
-#: (Guide.variance_ratio): the guided kernel costs 1.2-1.5x mis's per
-#: sample, and the indirect light is only part of a pixel's variance.
+#: (Guide.variance_ratio), and while a pass it drew measured at most this
+#: share of the unguided pass's relative variance per sample
+#: (measured_ratio): the guided kernel costs 1.2-1.5x mis's per sample,
+#: and the indirect light is only part of a pixel's variance.
 PAYS_BELOW = 0.8
 MAX_RECORDS = 1 << 22      # records per training render (longer passes split)
 FLOOR = 0.1                # uniform share of every learned pmf
@@ -555,6 +557,83 @@ def _sum_by(sums, direct, index, cell, li, ld) -> None:
     direct += np.bincount(index, weights=ld, minlength=n)
 
 
+class PixelMoments:
+    """Σ L and Σ L² per pixel of the paths' radiance in the training passes
+    drawn with one density (Records.pixel_moments), in two halves (a
+    pixel's even and odd samples, so that one half can weigh the other
+    without bias), and each half's samples per pixel."""
+
+    def __init__(self):
+        self.halves = [[None, None, 0], [None, None, 0]]
+
+    def add(self, moments) -> None:
+        """Add ``moments`` (as Records.pixel_moments gives them; None: nothing)."""
+        if moments is None:
+            return
+        for half, (first, second, n) in zip(self.halves, moments):
+            if n:
+                half[0] = first if half[0] is None else half[0] + first
+                half[1] = second if half[1] is None else half[1] + second
+                half[2] += n
+
+    def mean_square(self, half=None) -> tuple:
+        """(mean, mean of squares) per pixel of one half (0, 1) or of both;
+        (None, None) where it holds no samples."""
+        parts = [h for i, h in enumerate(self.halves) if h[2] and half in (None, i)]
+        if not parts:
+            return None, None
+        n = sum(h[2] for h in parts)
+        return sum(h[0] for h in parts) / n, sum(h[1] for h in parts) / n
+
+
+#: Relative variance as relMSE weighs it: over (μ² + this) per pixel (tev's
+#: convention, as validation/stats/metrics.py).
+RELATIVE_EPSILON = 0.01
+
+
+#: A guided pass whose pixels' mean (weighted as relMSE weighs them) is this
+#: much above the unguided pass's found light the unguided paths missed:
+#: their variance reads low, and the measured share is not trusted.
+#: sunlit_room under its hole (sun 500), where guiding cut relMSE to 0.29×
+#: at 64² × 1 024 spp, read 1.11 with a variance share of 1.16 in one of
+#: three renders at 32² × 512 spp; the Cornell box, the sunrise and city
+#: probes, phong_spheres and sun_sky, where guiding did not pay, read
+#: 0.98-1.02 (docs/measurements.md, 2026-12-06).
+UNSEEN_ABOVE = 1.05
+
+
+def measured_ratios(unguided: PixelMoments, guided: PixelMoments) -> tuple[float, float]:
+    """(variance, mean): the relative variance of one sample of the pixels'
+    estimate drawn with a learned density (``guided``) over that of BSDF
+    sampling's (``unguided``), measured on the training passes' own paths,
+    and the ratio of their means. Per pixel the variance is E[L²] − μ², μ²
+    estimated without bias by the product of the two passes' means
+    (independent samples of one pixel), weighted by 1/(μ̂² + ε) as relMSE
+    weighs pixels, μ̂ the mean of the guided pass's other half (a weight
+    drawn from the samples it weighs biased the variances by more than
+    they are); both ways round, summed. What the whole path's estimate
+    gains, direct light and path weights included, where
+    Guide.variance_ratio predicts the indirect light's alone. A mean ratio
+    above :data:`UNSEEN_ABOVE` says the unguided paths missed light (their
+    variance reads low). (NaN, NaN) where either was not measured or the
+    guided pass has one sample per pixel; inf where the unguided paths show
+    no variance."""
+    m_u, s_u = unguided.mean_square()
+    if m_u is None or not all(h[2] for h in guided.halves):
+        return float("nan"), float("nan")
+    v_u = v_g = mean_u = mean_g = 0.0
+    for weighs, weighed in ((0, 1), (1, 0)):
+        m_w, _ = guided.mean_square(weighs)
+        m_g, s_g = guided.mean_square(weighed)
+        weight = 1.0 / (np.square(m_w) + RELATIVE_EPSILON)
+        v_u += float(np.sum(weight * (s_u - m_u * m_g)))
+        v_g += float(np.sum(weight * (s_g - m_u * m_g)))
+        mean_u += float(np.sum(weight * m_u))
+        mean_g += float(np.sum(weight * m_g))
+    return (v_g / v_u if v_u > 0 else float("inf")), \
+        (mean_g / mean_u if mean_u > 0 else float("inf"))
+
+
 class Records:
     """What the training paths of one render leave: per vertex its voxel,
     the point its continuation hit (far along it where it escaped), the
@@ -598,6 +677,19 @@ class Records:
                 del arrays[:3]
             else:
                 setattr(self, f, arrays.pop(0))
+
+    def pixel_moments(self, pixels: int):
+        """[(Σ L, Σ L², samples)] per pixel of the ``pixels`` (numpy) from the
+        paths' radiance, of its even and of its odd samples, as
+        :class:`PixelMoments` adds them; None in scalar
+        variants, which trace a pixel's samples in no fixed order. A JIT
+        wavefront holds each pixel's samples side by side (Mitsuba's
+        sampling integrator: lane // spp is the pixel)."""
+        if not dr.is_jit_v(mi.Float) or self.lanes % pixels:
+            return None
+        path = np.array(self.path, np.float64).reshape(pixels, self.lanes // pixels)
+        return [(h.sum(axis=1), np.square(h).sum(axis=1), h.shape[1])
+                for h in (path[:, 0::2], path[:, 1::2])]
 
     def learned(self, grid, res: int, parallax: bool = True):
         """(voxel, cell, L_i, L_d, distance) as numpy, one row per vertex whose

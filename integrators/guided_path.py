@@ -13,8 +13,9 @@ from .bsdf_sampling import sample_bsdf_direction
 from .emitter_sampling import emitter_direction_pdf, sample_emitter_direction
 from .estimator import IlluminationEstimator, over_pdf
 from .guide import (FAR, GRID, MAX_RECORDS, PASSES, PAYS_BELOW, SLOTS_PER_CELL, TRAIN_DEPTH,
-                    TRAIN_FRACTION, Guide, Records, Tally, anchor_of, grid_of, on_plane,
-                    pass_seed, square_cell, take, training_passes, voxel_of)
+                    TRAIN_FRACTION, UNSEEN_ABOVE, Guide, PixelMoments, Records, Tally, anchor_of,
+                    grid_of, measured_ratios, on_plane, pass_seed, square_cell, take,
+                    training_passes, voxel_of)
 
 # ----------------------------- Strategy ---------------------------------
 # The learned part is a piecewise-constant density on the unit square, warped
@@ -194,9 +195,15 @@ class GuidedPathIntegrator(IlluminationEstimator):
        - Guide only where it pays: after each training pass, the variance of
          the indirect light's estimate with the learned mixture is predicted
          from the records, as a share of BSDF sampling's (per leaf and cell
-         the records' mean L_i and L_i²: ``Guide.variance_ratio``); above
-         this share the rest of the render is ``mis``, whose kernel costs
-         less per sample. A large value keeps every learned density.
+         the records' mean L_i and L_i²: ``Guide.variance_ratio``); after a
+         pass drawn with a learned density, the relative variance of its
+         pixels' samples is also measured, as a share of the unguided first
+         pass's (``guide.measured_ratio``; JIT variants). Above this share
+         the rest of the render is ``mis``, whose kernel costs less per
+         sample: the predicted share always, the measured one unless the
+         guided pass's mean is well above the unguided one's (those paths
+         missed light the guide found, and their variance reads low). A
+         large value keeps every learned density.
          (Default: 0.8)
      * - combine_passes
        - |bool|
@@ -250,7 +257,10 @@ class GuidedPathIntegrator(IlluminationEstimator):
     learns nothing and training stops; where what was learned is predicted
     to leave more than ``max_variance_ratio`` of BSDF sampling's variance of
     the indirect light (a smooth sky, light mostly direct) it stops too, and
-    the rest of the samples render as ``mis``. Every pass's image is
+    the rest of the samples render as ``mis``; so does a render whose guided
+    pass measured that it did not pay on its own paths (the light mostly
+    direct to the camera's first hits, where the indirect light's gain is a
+    small share of a pixel's). Every pass's image is
     unbiased, whatever density drew it, so the result (``combine_passes``)
     is their average weighted by spp: the mean of all the render's samples,
     none of the training samples lost; its wall time includes the learning.
@@ -351,17 +361,42 @@ class GuidedPathIntegrator(IlluminationEstimator):
         depth = int(min(self.max_depth, TRAIN_DEPTH))
         tally = Tally(self.directional_res)   # the records of every pass so far
         self._images = []                   # (spp, image) of every training render
+        unguided = PixelMoments()           # the pixels' samples drawn without a guide
         try:
             for i, n in enumerate(training_passes(spp, self.train_fraction,
                                                   self.train_passes)):
-                self._train(scene, sensor, pass_seed(seed, i), n, pixels, depth, tally)
+                drawn = unguided if self._guide is None else PixelMoments()
+
+                def pays(moments) -> bool:
+                    # (the guide that drew this pass did not pay on its own
+                    # paths, and they found no light the unguided ones
+                    # missed: the Cornell box at 128² × 24-96 spp measured
+                    # 0.84-1.02 and guided at 0.6-0.8× path's efficiency;
+                    # NaN, which pays, where nothing was guided yet or in
+                    # scalar variants)
+                    if moments is unguided:
+                        return True
+                    variance, means = measured_ratios(unguided, moments)
+                    return not (variance > self.max_variance_ratio and means <= UNSEEN_ABOVE)
+                self._train(scene, sensor, pass_seed(seed, i), n, pixels, depth, tally, drawn,
+                            pays)
+                measured = measured_ratios(unguided, drawn)[0] if drawn is not unguided \
+                    else float("nan")
+                if not pays(drawn):
+                    # (what it would learn now is not learned: nothing reads it)
+                    self.training.append({"spp": n, "records": tally.records, "leaves": None,
+                                          "trained_leaves": None, "bsdf_share": None,
+                                          "variance_ratio": None, "measured_ratio": measured})
+                    self._guide = None
+                    break
                 guide = Guide.learn(tally, self.spatial_threshold, self.directional_threshold)
                 ratio = guide.variance_ratio(self.bsdf_fraction)
                 self.training.append({"spp": n, "records": tally.records,
                                       "leaves": guide.leaves,
                                       "trained_leaves": guide.trained_leaves,
                                       "bsdf_share": guide.bsdf_share(self.bsdf_fraction),
-                                      "variance_ratio": ratio})
+                                      "variance_ratio": ratio,
+                                      "measured_ratio": measured})
                 if not guide.trained_leaves:
                     break           # (nothing arrives indirectly: the rest renders as mis)
                 # (a guide that cuts little of the variance costs more than it
@@ -395,18 +430,23 @@ class GuidedPathIntegrator(IlluminationEstimator):
             self._records, self.records_paths, self._guide = None, False, None
             self._images = []
 
-    def _train(self, scene, sensor, seed, spp, pixels, depth, tally):
+    def _train(self, scene, sensor, seed, spp, pixels, depth, tally, moments, pays):
         """One training pass of ``spp`` (in pieces of at most MAX_RECORDS
-        vertices), sampling with the guide learned so far; its vertices'
-        records (:meth:`Records.learned`) are added to ``tally``. Every
-        record estimates L_i whatever density drew it, so the passes'
-        records are pooled."""
+        vertices), sampling with the guide learned so far; its pixels'
+        moments are added to ``moments`` (:class:`PixelMoments`), its
+        vertices' records (:meth:`Records.learned`) to ``tally`` unless
+        ``pays(moments)`` is false after the last piece (the rest renders
+        without a guide: nothing more to learn). Every record estimates L_i
+        whatever density drew it, so the passes' records are pooled."""
         pieces = max(1, -(-pixels * spp * depth // MAX_RECORDS))
-        per = [spp // pieces + (k < spp % pieces) for k in range(pieces)]
-        for k, n in enumerate(p for p in per if p):
+        sizes = [n for n in (spp // pieces + (k < spp % pieces) for k in range(pieces)) if n]
+        for k, n in enumerate(sizes):
             self._records, self.records_paths = Records(pixels * n, depth), True
             self._images.append(
                 (n, self._launch(scene, sensor, pass_seed(seed, 1000 + k), n, True, True)))
+            moments.add(self._records.pixel_moments(pixels))
+            if k == len(sizes) - 1 and not pays(moments):
+                break
             tally.add(*self._records.learned(self._grid, self.directional_res, self.parallax))
         self.records_paths = False
 

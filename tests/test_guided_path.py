@@ -300,7 +300,10 @@ def test_roulette_that_reads_the_unguided_weight_keeps_the_paths_towards_the_lig
     scene = renders.load_scene(ROOM, res=32, gap="hole", sun=500)
     found = {}
     for roulette in ("unguided", "throughput"):
-        guided = renders.make_integrator("guided_path", {"roulette": roulette})
+        # (every density kept: a guided pass at 32² that measures no gain
+        # would render the rest as mis, and roulette is what is tested)
+        guided = renders.make_integrator("guided_path", {"roulette": roulette,
+                                                         "max_variance_ratio": 1e30})
         images = batch(scene, guided, 512, 6)[..., :3]
         mean = images.mean(axis=0)
         found[roulette] = (float(np.mean(images.var(axis=0, ddof=1)
@@ -325,6 +328,9 @@ def test_where_light_is_mostly_direct_the_bsdf_takes_the_larger_share(llvm):
     assert v_guided < 1.6 * v_mis, (v_guided, v_mis)
     assert abs(mean_guided / mean_mis - 1) < 0.05
     room = renders.load_scene(ROOM, res=16)
+    # (every density kept: this room's guided pass at 16² × 64 spp measures
+    # no gain, and the share is what is tested)
+    guided = renders.make_integrator("guided_path", {"max_variance_ratio": 1e30})
     renders.render(room, guided, 64, seed=0)
     assert guided.training[-1]["bsdf_share"] < 0.6, guided.training
 
@@ -404,8 +410,12 @@ def test_a_density_that_pays_too_little_is_dropped_and_the_rest_renders_as_mis(l
     variance of the indirect light (0.98 here), so training stops there and
     the rest renders as mis (whose mean it keeps); the same render with
     every density kept trains twice. sunlit_room_hole (all light indirect,
-    through a hole) predicts about 0.5, then 0.3: it keeps guiding. And
-    the setting is checked."""
+    through a hole) predicts about 0.5, then 0.3: it keeps guiding. The
+    Cornell box at 128² × 40 spp predicts a gain (0.80 of the indirect
+    light's variance), but the pass drawn with it measures more than 0.8
+    of the unguided pass's relative variance per sample (2.2 here): the
+    rest renders as mis, and what that pass would teach is not learned.
+    And the setting is checked."""
     sky = renders.load_scene(str(SCENES / "sky_sphere.xml"), res=64)
     dropped = renders.make_integrator("guided_path", {})
     kept = renders.make_integrator("guided_path", {"max_variance_ratio": 1e30})
@@ -421,8 +431,81 @@ def test_a_density_that_pays_too_little_is_dropped_and_the_rest_renders_as_mis(l
     renders.render(hole, guided, 64, seed=2)
     assert len(guided.training) == 2 and guided.training[-1]["variance_ratio"] < 0.6, \
         guided.training
+    box = renders.load_scene(str(SCENES / "cornell_box.xml"), res=128)
+    guided = renders.make_integrator("guided_path", {})
+    mean = renders.render(box, guided, 40, seed=0).image.mean()
+    assert len(guided.training) == 2 and guided.training[-1]["leaves"] is None
+    assert guided.training[0]["variance_ratio"] <= 0.8 < guided.training[-1]["measured_ratio"]
+    mis = renders.render(box, renders.make_integrator("mis", {}), 40, seed=0).image.mean()
+    assert abs(mean / mis - 1) < 0.02, (mean, mis)
     with pytest.raises(Exception, match="max_variance_ratio"):
         mi.load_dict({"type": "guided_path", "max_variance_ratio": 0.0})
+
+
+def test_a_pass_pixel_moments_are_its_image(llvm):
+    """Records.pixel_moments reads lane // spp as a lane's pixel (Mitsuba's
+    wavefront holds a pixel's samples side by side): under a box filter
+    each pixel's mean path radiance is the training pass's image there."""
+    g = guide()
+    scene = mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 40,
+                   "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 4], target=[0, 0, 0],
+                                                              up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 12, "height": 8,
+                            "rfilter": {"type": "box"}, "pixel_format": "rgb"}},
+        "sphere": {"type": "sphere", "bsdf": {"type": "diffuse"}},
+        "floor": {"type": "rectangle", "bsdf": {"type": "diffuse"},
+                  "to_world": mi.ScalarTransform4f().translate([0, 0, -1]).scale(3)},
+        "sky": {"type": "constant", "radiance": {"type": "rgb", "value": [0.2, 0.5, 1.0]}}})
+    integrator = renders.make_integrator("guided_path", {"train_passes": 1,
+                                                        "train_fraction": 0.5})
+    seen = {}
+    launch, moments = integrator._launch, g.Records.pixel_moments
+
+    def first_launch(*args):
+        image = launch(*args)
+        seen.setdefault("image", np.array(image)[..., :3].mean(axis=-1))
+        return image
+
+    def read(records, pixels):
+        seen.setdefault("moments", moments(records, pixels))
+        return seen["moments"]
+    integrator._launch = first_launch
+    g.Records.pixel_moments = read
+    try:
+        renders.render(scene, integrator, 8, seed=3)
+    finally:
+        g.Records.pixel_moments = moments
+    (first, second, n), (first_b, _, n_b) = seen["moments"]
+    assert n == n_b == 2 and first.shape == (96,)
+    assert np.all(second * n >= first ** 2 * (1 - 1e-6))
+    assert np.allclose((first + first_b).reshape(8, 12) / 4, seen["image"],
+                       rtol=1e-4, atol=1e-6)
+
+
+def test_measured_ratios_read_relative_variance_and_unseen_light(llvm):
+    """guide.measured_ratios on samples of known spread: per pixel μ (0.1-2),
+    the unguided pass's samples spread 0.8 μ at 1 spp, the guided pass's
+    0.4 μ at 3 spp: a relative variance ratio of 0.25 (0.79 with each
+    pixel weighed by its own samples' mean), means alike. Where the
+    unguided pass saw a third of the light, the means' ratio says so."""
+    g = guide()
+    rng = np.random.default_rng(5)
+    mu = rng.uniform(0.1, 2.0, 20000)
+
+    def moments(spread, n, scale=1.0):
+        x = mu[:, None] * scale * (1 + spread * rng.standard_normal((mu.size, n)))
+        m = g.PixelMoments()
+        m.add([(h.sum(axis=1), np.square(h).sum(axis=1), h.shape[1])
+               for h in (x[:, 0::2], x[:, 1::2])])
+        return m
+    unguided = moments(0.8, 1)
+    variance, means = g.measured_ratios(unguided, moments(0.4, 3))
+    assert abs(variance / 0.25 - 1) < 0.1 and abs(means - 1) < 0.02, (variance, means)
+    _, means = g.measured_ratios(moments(0.8, 1, scale=1 / 3), moments(0.4, 3))
+    assert means > 2.5 > g.UNSEEN_ABOVE
+    assert np.isnan(g.measured_ratios(g.PixelMoments(), moments(0.4, 3))[0])
 
 
 def test_nested_in_moment_it_renders_as_mis(llvm):
