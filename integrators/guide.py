@@ -140,7 +140,7 @@ TRAIN_FRACTION = 0.125
 #: this share of BSDF sampling's variance of the indirect light
 #: (Guide.variance_ratio), and while a pass it drew measured at most this
 #: share of the unguided pass's relative variance per sample
-#: (measured_ratio): the guided kernel costs 1.2-1.5x mis's per sample,
+#: (measured_ratios): the guided kernel costs 1.2-1.5x mis's per sample,
 #: and the indirect light is only part of a pixel's variance.
 PAYS_BELOW = 0.8
 MAX_RECORDS = 1 << 22      # records per training render (longer passes split)

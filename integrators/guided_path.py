@@ -198,7 +198,7 @@ class GuidedPathIntegrator(IlluminationEstimator):
          the records' mean L_i and L_i²: ``Guide.variance_ratio``); after a
          pass drawn with a learned density, the relative variance of its
          pixels' samples is also measured, as a share of the unguided first
-         pass's (``guide.measured_ratio``; JIT variants). Above this share
+         pass's (``guide.measured_ratios``; JIT variants). Above this share
          the rest of the render is ``mis``, whose kernel costs less per
          sample: the predicted share always, the measured one unless the
          guided pass's mean is well above the unguided one's (those paths
@@ -366,37 +366,21 @@ class GuidedPathIntegrator(IlluminationEstimator):
             for i, n in enumerate(training_passes(spp, self.train_fraction,
                                                   self.train_passes)):
                 drawn = unguided if self._guide is None else PixelMoments()
-
-                def pays(moments) -> bool:
-                    # (the guide that drew this pass did not pay on its own
-                    # paths, and they found no light the unguided ones
-                    # missed: the Cornell box at 128² × 24-96 spp measured
-                    # 0.84-1.02 and guided at 0.6-0.8× path's efficiency;
-                    # NaN, which pays, where nothing was guided yet or in
-                    # scalar variants)
-                    if moments is unguided:
-                        return True
-                    variance, means = measured_ratios(unguided, moments)
-                    return not (variance > self.max_variance_ratio and means <= UNSEEN_ABOVE)
-                self._train(scene, sensor, pass_seed(seed, i), n, pixels, depth, tally, drawn,
-                            pays)
-                measured = measured_ratios(unguided, drawn)[0] if drawn is not unguided \
-                    else float("nan")
-                if not pays(drawn):
+                measured, paid = self._train(scene, sensor, pass_seed(seed, i), n, pixels,
+                                             depth, tally, drawn, unguided)
+                entry = {"spp": n, "records": tally.records, "leaves": None,
+                         "trained_leaves": None, "bsdf_share": None, "variance_ratio": None,
+                         "measured_ratio": measured}
+                self.training.append(entry)
+                if not paid:
                     # (what it would learn now is not learned: nothing reads it)
-                    self.training.append({"spp": n, "records": tally.records, "leaves": None,
-                                          "trained_leaves": None, "bsdf_share": None,
-                                          "variance_ratio": None, "measured_ratio": measured})
                     self._guide = None
                     break
                 guide = Guide.learn(tally, self.spatial_threshold, self.directional_threshold)
                 ratio = guide.variance_ratio(self.bsdf_fraction)
-                self.training.append({"spp": n, "records": tally.records,
-                                      "leaves": guide.leaves,
-                                      "trained_leaves": guide.trained_leaves,
-                                      "bsdf_share": guide.bsdf_share(self.bsdf_fraction),
-                                      "variance_ratio": ratio,
-                                      "measured_ratio": measured})
+                entry.update(leaves=guide.leaves, trained_leaves=guide.trained_leaves,
+                             bsdf_share=guide.bsdf_share(self.bsdf_fraction),
+                             variance_ratio=ratio)
                 if not guide.trained_leaves:
                     break           # (nothing arrives indirectly: the rest renders as mis)
                 # (a guide that cuts little of the variance costs more than it
@@ -430,25 +414,37 @@ class GuidedPathIntegrator(IlluminationEstimator):
             self._records, self.records_paths, self._guide = None, False, None
             self._images = []
 
-    def _train(self, scene, sensor, seed, spp, pixels, depth, tally, moments, pays):
+    def _train(self, scene, sensor, seed, spp, pixels, depth, tally, moments, unguided):
         """One training pass of ``spp`` (in pieces of at most MAX_RECORDS
         vertices), sampling with the guide learned so far; its pixels'
-        moments are added to ``moments`` (:class:`PixelMoments`), its
-        vertices' records (:meth:`Records.learned`) to ``tally`` unless
-        ``pays(moments)`` is false after the last piece (the rest renders
-        without a guide: nothing more to learn). Every record estimates L_i
-        whatever density drew it, so the passes' records are pooled."""
+        moments are added to ``moments`` (:class:`PixelMoments`; for a pass
+        drawn without a guide, ``unguided`` itself), its vertices' records
+        (:meth:`Records.learned`) to ``tally`` unless the pass did not pay.
+        Every record estimates L_i whatever density drew it, so the
+        passes' records are pooled. Returns (the measured share of the
+        unguided pass's relative variance, NaN where not measured; whether
+        the pass paid)."""
         pieces = max(1, -(-pixels * spp * depth // MAX_RECORDS))
         sizes = [n for n in (spp // pieces + (k < spp % pieces) for k in range(pieces)) if n]
+        measured, paid = float("nan"), True
         for k, n in enumerate(sizes):
             self._records, self.records_paths = Records(pixels * n, depth), True
             self._images.append(
                 (n, self._launch(scene, sensor, pass_seed(seed, 1000 + k), n, True, True)))
             moments.add(self._records.pixel_moments(pixels))
-            if k == len(sizes) - 1 and not pays(moments):
-                break
+            if k == len(sizes) - 1 and moments is not unguided:
+                # (the guide that drew this pass did not pay on its own
+                # paths, and they found no light the unguided ones missed:
+                # the Cornell box at 128² × 24-96 spp measured 0.84-1.02 and
+                # guided at 0.6-0.8× path's efficiency; NaN, which pays, in
+                # scalar variants)
+                measured, means = measured_ratios(unguided, moments)
+                paid = not (measured > self.max_variance_ratio and means <= UNSEEN_ABOVE)
+                if not paid:
+                    break
             tally.add(*self._records.learned(self._grid, self.directional_res, self.parallax))
         self.records_paths = False
+        return measured, paid
 
     def _launch(self, scene, sensor, seed, spp, develop, evaluate):
         """One pass: Mitsuba's render, or :attr:`frozen_pass` replaying it

@@ -155,14 +155,15 @@ def small(variant: str, scalar: int, vectorized: int) -> int:
     return scalar if variant.startswith("scalar") else vectorized
 
 
-def tiny_scene(**items):
-    """A 2x2 camera looking down at whatever ``items`` add."""
+def tiny_scene(width: int = 2, height: int = 2, **items):
+    """A camera (2x2 by default, box filter) looking down at whatever
+    ``items`` add."""
     return mi.load_dict({
         "type": "scene",
         "sensor": {"type": "perspective", "fov": 40,
                    "to_world": mi.ScalarTransform4f().look_at(
                        origin=[0, 3, 3], target=[0, 0, 0], up=[0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": 2, "height": 2,
+                   "film": {"type": "hdrfilm", "width": width, "height": height,
                             "rfilter": {"type": "box"}}},
         **items,
     })

@@ -17,7 +17,7 @@ import mitsuba as mi
 from mcillum.testing import assert_unbiased, compare
 from mcillum.validation.run import renders
 
-from conftest import SCENES, batch
+from conftest import SCENES, batch, disk, tiny_scene
 
 ROOM = str(SCENES / "sunlit_room.xml")
 
@@ -447,17 +447,11 @@ def test_a_pass_pixel_moments_are_its_image(llvm):
     wavefront holds a pixel's samples side by side): under a box filter
     each pixel's mean path radiance is the training pass's image there."""
     g = guide()
-    scene = mi.load_dict({
-        "type": "scene",
-        "sensor": {"type": "perspective", "fov": 40,
-                   "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 4], target=[0, 0, 0],
-                                                              up=[0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": 12, "height": 8,
-                            "rfilter": {"type": "box"}, "pixel_format": "rgb"}},
-        "sphere": {"type": "sphere", "bsdf": {"type": "diffuse"}},
-        "floor": {"type": "rectangle", "bsdf": {"type": "diffuse"},
-                  "to_world": mi.ScalarTransform4f().translate([0, 0, -1]).scale(3)},
-        "sky": {"type": "constant", "radiance": {"type": "rgb", "value": [0.2, 0.5, 1.0]}}})
+    # (a film wider than tall: rows and columns cannot be swapped unseen)
+    scene = tiny_scene(12, 8, sphere={"type": "sphere", "bsdf": {"type": "diffuse"}},
+                       floor=disk({"type": "diffuse"}),
+                       sky={"type": "constant",
+                            "radiance": {"type": "rgb", "value": [0.2, 0.5, 1.0]}})
     integrator = renders.make_integrator("guided_path", {"train_passes": 1,
                                                         "train_fraction": 0.5})
     seen = {}
