@@ -23,6 +23,7 @@ from mcillum.validation.run import renders
 from mcillum.validation.stats import replication, statistics, tails
 from mcillum.validation.checks import sun as sun_rules
 from mcillum.validation.checks.evidence import FAILING, HEAVY
+from mcillum.validation.stages import sequential
 from mcillum.validation.stages.context import Run
 
 from conftest import ALL_ESTIMATORS, SCENES
@@ -224,20 +225,21 @@ def run_with_controls(run_case, case):
 def test_sun_case_renders_on_until_it_decides_and_fails_the_controls(run_case):
     """sun_sky, 8² px, 16 spp × 64 seeds, then the sequential test
     (stages/sequential.py; α = 0.01 spent over the looks): path and mis are
-    fine; cosine misses the sun (0.0002 sr) in most renders and renders on
-    to its budget (1024× its first samples) without finding a bias, and
-    says what would decide. The controls are biased: the wrong pdf without
-    the sun, the clamps (with fireflies or without) and the missing bounces
-    with the sun. A clamp at radiance 15 000 darkens only the sun's hits:
-    the real sun cannot show it at this budget, the widened sun does
-    (envmaps/sun.py), and so it does not pass as inconclusive."""
+    fine; cosine misses the sun (0.0002 sr) in most renders; its test finds
+    no bias, and stops where deciding would need more than BEYOND_BUDGET ×
+    its budget (1024× its first samples), as the sun split decides it. The
+    controls are biased: the wrong pdf without the sun, the clamps (with
+    fireflies or without) and the missing bounces with the sun. A clamp at
+    radiance 15 000 darkens only the sun's hits: the real sun cannot show
+    it at this budget, the widened sun does (envmaps/sun.py), and so it
+    does not pass as inconclusive."""
     rows, checks, controls = run_with_controls(run_case, QUICK["failures.heavy_tail.sun_sky"])
     assert rows["path"].verdict == "fine" and rows["mis"].verdict == "fine"
     cos = rows["cosine_hemisphere"]
     assert cos.verdict in (HEAVY, "heavy-tailed"), cos.verdict
     n = cos.numbers
-    assert n.test.looks > 1 and n.test.samples_per_pixel > 100 * n.samples_per_pixel
-    assert n.test.outcome == "inconclusive" and n.test.samples_needed > n.test.samples_per_pixel
+    assert n.test.outcome == "inconclusive" and "would decide" in n.test.reason
+    assert n.test.samples_needed > sequential.BEYOND_BUDGET * n.test.samples_per_pixel
     # decided on the split map: without the sun, and with it widened
     assert n.sun.sunless_outcome == "pass" and n.sun.widened["solid_angle"] > 100 * \
         n.sun.sun["solid_angle"]

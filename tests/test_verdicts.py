@@ -318,6 +318,37 @@ def test_a_fail_of_one_biased_by_design_renders_no_confirming_batch():
     assert confirmed.decision.outcome == "fail" and len(asked) == 1 and confirmed.replicated
 
 
+def test_a_test_the_sun_split_follows_stops_where_its_budget_cannot_decide():
+    """``split_follows`` (the sun split will test the estimator without the
+    sun and with it widened): a reading that needs more than
+    BEYOND_BUDGET × the budget stops at once, says what would decide, and
+    renders no batch; the same renders without a split render on to the
+    budget and stay inconclusive. A missing source still fails at once
+    (a fail is never stopped)."""
+    rng = np.random.default_rng(7)
+    ref, mean = reference()
+    asked = []
+
+    def more(look, spp, k, **twin):
+        asked.append(look)
+        return spp, renders(rng, spp=spp, k=k, **twin)
+
+    x = renders(rng)
+    stopped, _ = sequential.settle([(SPP, x)], ref, reader(mean), more, EPSILON, 16,
+                                   split_follows=True)
+    d = stopped.decision
+    assert (d.outcome, stopped.looks, asked) == ("inconclusive", 1, [])
+    assert d.samples_needed > sequential.BEYOND_BUDGET * stopped.budget
+    assert f"the budget of {stopped.budget}" in d.reason and "budget spent" not in d.reason
+    on, _ = sequential.settle([(SPP, x)], ref, reader(mean), more, EPSILON, 16)
+    assert on.decision.outcome == "inconclusive" and on.looks > 1 and asked
+    assert "budget spent" in on.decision.reason
+    missing, _ = sequential.settle([(SPP, renders(rng, tail=False))], ref, reader(mean),
+                                   lambda look, spp, k: more(look, spp, k, tail=False),
+                                   EPSILON, 16, split_follows=True)
+    assert missing.decision.outcome == "fail" and missing.replicated
+
+
 def test_looks_spend_alpha_and_a_light_tailed_estimator_fails_at_most_alpha():
     """Σ α_j over any number of looks stays below α; 300 sequential tests of a
     correct light-tailed estimator with a tight ε (so that most render on)
@@ -660,7 +691,9 @@ def test_scenes_and_cases_render_no_batch_to_confirm_a_bias_by_design(monkeypatc
     biased by design (bayesian_hemisphere) reads its first look only and
     confirms nothing; in a failure case it goes on where undecided but
     confirms nothing; Monte Carlo estimators keep both (their settle calls
-    are the same but for these two arguments)."""
+    are the same but for these two arguments). On the real map of a sun,
+    the tests of the estimators that do not sample the emitters stop where
+    their budget cannot decide (the sun split follows); none other does."""
     import types
 
     from mcillum.validation.stages import scene, sun_split
@@ -668,7 +701,7 @@ def test_scenes_and_cases_render_no_batch_to_confirm_a_bias_by_design(monkeypatc
     calls = {}
 
     def spy(first, reference, read, more, epsilon, growth, looks=sequential.LOOKS, **kw):
-        calls[name] = (looks, kw["confirm"], kw["control"] is not None)
+        calls[name] = (looks, kw["confirm"], kw["control"] is not None, kw["split_follows"])
         d = evidence.Decision(outcome="pass", reason="")
         c = types.SimpleNamespace(passed=True, pass_fraction=1.0, min_p=1.0, pooled_p=[1.0],
                                   alpha_pixel=0.01, summary=lambda: "")
@@ -683,7 +716,8 @@ def test_scenes_and_cases_render_no_batch_to_confirm_a_bias_by_design(monkeypatc
     run = types.SimpleNamespace(sequential=types.SimpleNamespace(
         scene_epsilon=0.02, scene_budget=16), growth=lambda b: b)
     ctx = types.SimpleNamespace(
-        reference=ref, run=run, plan=types.SimpleNamespace(ladder=[SPP]),
+        reference=ref, run=run, plan=types.SimpleNamespace(ladder=[SPP]), sun=None,
+        resolved={}, disc=False,
         integrators=dict.fromkeys((*names, "path")),
         stacks={SPP: {n: types.SimpleNamespace(images=x) for n in names}},
         evidence={n: evidence.Evidence(comparison=object(), events=np.zeros((P, P)),
@@ -691,17 +725,27 @@ def test_scenes_and_cases_render_no_batch_to_confirm_a_bias_by_design(monkeypatc
     for name in names:                               # the spy reads `name`
         scene.settle(types.SimpleNamespace(**{**vars(ctx), "evidence": {
             name: ctx.evidence[name]}}))
-    assert calls == {"bayesian_hemisphere": (1, False, False),
-                     "cosine_hemisphere": (20, True, True)}
+    assert calls == {"bayesian_hemisphere": (1, False, False, False),
+                     "cosine_hemisphere": (20, True, True, False)}
     monkeypatch.setattr(sun_split, "terms", lambda ctx: (0.05, 1024))
     monkeypatch.setattr(sun_split, "_reader", lambda ctx, name: None)
     monkeypatch.setattr(sun_split.common, "first_look", lambda ctx: (SPP, 4))
-    case = types.SimpleNamespace(reference=ref, integrators=ctx.integrators)
+    case = types.SimpleNamespace(reference=ref, integrators=ctx.integrators, sun=None,
+                                 disc=False)
     monkeypatch.setattr(sun_split, "BatchTest", lambda **kw: kw)
     for name in names:
         sun_split.settled_test(case, name, x)
-    assert calls == {"bayesian_hemisphere": (20, False, False),
-                     "cosine_hemisphere": (20, True, True)}
+    assert calls == {"bayesian_hemisphere": (20, False, False, False),
+                     "cosine_hemisphere": (20, True, True, False)}
+    sunny = types.SimpleNamespace(**{**vars(case), "sun": {"texels": 6}})
+    for name in (*names, "mis"):
+        sun_split.settled_test(sunny, name, x)
+    assert {n: c[3] for n, c in calls.items()} == {
+        "bayesian_hemisphere": True, "cosine_hemisphere": True, "mis": False}
+    widened = types.SimpleNamespace(**{**vars(sunny), "disc": True})
+    for name in names:
+        sun_split.settled_test(widened, name, x)
+    assert not any(c[3] for c in calls.values())
 
 
 def test_the_windows_around_the_pixels_read_merge_clip_and_give_up():

@@ -96,7 +96,7 @@ def verdict_line(v: str, n) -> str:
     elif v in ("biased", BY_DESIGN) and n.sun is not None and not n.sun.sunless_passed:
         text += f"; biased without the sun too: {n.sun.sunless_reason}; {n.sun.sunless_test}"
     elif widened_decided(n.sun):
-        text += "; " + split_line(n.sun, t.samples_per_pixel)
+        text += "; " + split_line(n.sun, t.samples_per_pixel, t.samples_needed)
     elif t is not None:
         text += f"; {t.reason + ' — ' if t.reason else ''}{t.test}"
     return text
@@ -114,12 +114,13 @@ def widened_words(s) -> str:
             f"{'BIASED: ' if s.widened_outcome == 'fail' else ''}{s.widened_reason}")
 
 
-def split_line(s, samples: int) -> str:
+def split_line(s, samples: int, needed: float | None = None) -> str:
     """How the split map decided a test the real sun left undecided at
-    ``samples`` per pixel."""
+    ``samples`` per pixel (``needed``: about how many would have decided)."""
     real = (f"the real sun ({s.sun['solid_angle']:.2g} sr, {100 * s.sun_share_of_image:.0f} % "
             f"of path's image) is hit too rarely to decide in "
-            f"{samples} samples per pixel")
+            f"{samples} samples per pixel"
+            + (f" (about {needed:.2g} would)" if needed else ""))
     if s.widened_outcome == "fail":
         return f"{real}; {widened_words(s)}"
     return (f"decided on the split map: {real}; without it {s.sunless_reason}; "

@@ -63,7 +63,7 @@ def split_decision(d: evidence.Decision, s, samples: int) -> evidence.Decision:
             f"with the sun: {d.reason}"))
     if widened_decided(s):
         return dataclasses.replace(d, outcome=s.widened_outcome,
-                                   reason=split_line(s, samples))
+                                   reason=split_line(s, samples, d.samples_needed))
     return d
 
 

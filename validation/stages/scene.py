@@ -36,7 +36,7 @@ from ..plan import seeds
 from ..results import Convergence, EstimatorResult, RunStats, SceneResult, Unbiasedness
 from ..run import stacks
 from ..stats import metrics, statistics, tails
-from . import sequential
+from . import sequential, sun_split
 from .common import REFERENCE, compile_kernels, kept_file, reference_summary, scene_summary
 
 ALPHA = statistics.ALPHA
@@ -213,8 +213,11 @@ def settle(ctx) -> None:
     decides or its budget is spent (stages/sequential.py): look 0 is the
     ladder, read with path's own rejections as the control; a rejection that
     counts is confirmed on the next batch, beside path's renders of its seeds.
-    An estimator biased by design keeps its first look's reading."""
+    An estimator biased by design keeps its first look's reading. On a map
+    with a sun, a test the sun split will decide stops where its budget
+    cannot (sequential.BEYOND_BUDGET)."""
     ref, seq = ctx.reference, ctx.run.sequential
+    sun_split.find_sun(ctx)
     for name, found in ctx.evidence.items():
         if found.comparison is None:
             continue
@@ -231,7 +234,8 @@ def settle(ctx) -> None:
                                              looks=1 if designed else sequential.LOOKS,
                                              reference_spp=ref.spp,
                                              control=sequential.control_renderer(ctx, name),
-                                             confirm=not designed)
+                                             confirm=not designed,
+                                             split_follows=sun_split.split_follows(ctx, name))
         found.settled.summary = c.summary()
 
 

@@ -42,6 +42,13 @@ profile's ``[sequential]``, ``mcillum validate --budget``), and at most
 :data:`REFERENCE_LEAD` × the reference's; at its end an inconclusive
 reading says the samples per pixel reached and, where a tail is to blame,
 about how many would see it.
+
+**Where a split decides.** On a map with a sun, a test whose estimator the
+sun split will test without the sun and with it widened
+(stages/sun_split.py) stops as soon as its reading needs more than
+:data:`BEYOND_BUDGET` × its budget to decide (``split_follows``): the
+budget cannot decide it, the split does, each twin's test with a budget of
+its own.
 """
 
 from __future__ import annotations
@@ -229,10 +236,19 @@ def budget(start: int, growth: float, reference_spp: int | None = None) -> int:
 #: Looks a test may take at most: the seed blocks of the sequential streams.
 LOOKS = 20
 
+#: A test the sun split follows stops where deciding needs more than this
+#: many times its budget. Uniform, cosine and BSDF sampling on the real sun
+#: of the full profile's seven heavy-tail cases asked for 1e6-5e7 samples
+#: per pixel at every look, 8-80× the budget of 131 072, and none decided
+#: in four full runs: their seven looks each, about 150 s of a run, ended
+#: where the split map decided them (docs/measurements.md, 2026-12-06).
+BEYOND_BUDGET = 8
+
 
 def settle(first: list, reference, read, more, epsilon: float, growth: float,
            alpha: float = statistics.ALPHA, looks: int = LOOKS,
-           reference_spp: int | None = None, control=None, confirm: bool = True):
+           reference_spp: int | None = None, control=None, confirm: bool = True,
+           split_follows: bool = False):
     """The sequential test (module doc) of an estimator's renders ``first``
     [(spp, (K, H, W, C))] against ``reference`` (the reference's
     :class:`statistics.Moments`): ``read(comparison, batches, look)`` the
@@ -248,7 +264,9 @@ def settle(first: list, reference, read, more, epsilon: float, growth: float,
     in it, or before it far past the reference (:data:`PATH_FIRST`) (None:
     none; see replication.replicated_rejection), ``confirm`` False: a fail stands at
     the look that reads it (an estimator biased by design, whose fail is
-    its label, not a check's outcome). Returns
+    its label, not a check's outcome), ``split_follows`` the sun split
+    will decide what this test leaves inconclusive: it stops where its
+    reading needs more than :data:`BEYOND_BUDGET` × the budget. Returns
     (:class:`evidence.Settled`, the last look's comparison)."""
     batches = [(spp, np.asarray(x)[..., :3]) for spp, x in first]
     start = samples(batches)
@@ -261,6 +279,12 @@ def settle(first: list, reference, read, more, epsilon: float, growth: float,
         total = samples(batches)
         d = evidence.settle(read(c, batches, look), c, epsilon, total)
         if d.outcome == "pass" or (d.outcome == "inconclusive" and 2 * total > limit):
+            break
+        if split_follows and d.outcome == "inconclusive" \
+                and (d.samples_needed or 0) > BEYOND_BUDGET * limit:
+            d.reason += (f"; stopped at {total} samples per pixel in {look + 1} look"
+                         f"{'s' if look else ''}: about {d.samples_needed:.2g} would decide, "
+                         f"{d.samples_needed / limit:.0f}× the budget of {limit}")
             break
         if d.outcome == "fail" and not confirm:
             confirmation = "not confirmed: biased by design"

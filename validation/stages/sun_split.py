@@ -91,7 +91,8 @@ def settled_test(ctx, name: str, x: np.ndarray) -> BatchTest:
                                    _reader(ctx, name), sequential.renderer(ctx, name),
                                    epsilon, growth, reference_spp=ctx.reference.spp,
                                    control=sequential.control_renderer(ctx, name),
-                                   confirm=not evidence.by_design(name))
+                                   confirm=not evidence.by_design(name),
+                                   split_follows=split_follows(ctx, name))
     d = settled.decision
     return BatchTest(passed=c.passed, pass_fraction=c.pass_fraction, min_p=c.min_p,
                      pooled_p=[float(p) for p in c.pooled_p], alpha_pixel=c.alpha_pixel,
@@ -102,6 +103,14 @@ def settled_test(ctx, name: str, x: np.ndarray) -> BatchTest:
                      replication_test=settled.replication or None, looks=settled.looks,
                      samples_per_pixel=settled.samples, relative_bias=d.relative_bias,
                      half_width=d.half_width)
+
+
+def split_follows(ctx, name: str) -> bool:
+    """Will the sun split decide what ``name``'s test on this context's map
+    leaves inconclusive: the real map of a sun (found: ``ctx.sun``), and an
+    estimator that does not sample the emitters (the widened twin tests
+    only those)? A twin's own test has no split after it."""
+    return bool(ctx.sun and ctx.sun["texels"]) and not ctx.disc and not samples_emitters(name)
 
 
 # ------------------------- What each kind of context holds -----------------------
