@@ -222,7 +222,7 @@ def run_with_controls(run_case, case):
     return rows, checks, [c.plugin_name for c in controls]
 
 
-def test_sun_case_renders_on_until_it_decides_and_fails_the_controls(run_case):
+def test_sun_case_is_decided_on_the_split_and_fails_the_controls(run_case):
     """sun_sky, 8² px, 16 spp × 64 seeds, then the sequential test
     (stages/sequential.py; α = 0.01 spent over the looks): path and mis are
     fine; cosine misses the sun (0.0002 sr) in most renders; its test finds

@@ -189,10 +189,11 @@ def sunless_twin(ctx) -> None:
     estimators whose test did not pass (inconclusive: a rejection a tail
     can explain, or an interval wider than ±ε; or biased), with `path`, on
     seed streams of its own; None where the map has no sun (a failure case
-    splits only its heavy-tail group's)."""
+    splits only its heavy-tail group's). The sun is found before the tests
+    on the real map (cases.test_bias; scene.settle: :func:`find_sun`), whose
+    stop reads it."""
     if ctx.is_case and ctx.plan.group != "heavy_tail":
         return
-    find_sun(ctx)
     tested = _not_passed(ctx)
     if not tested or ctx.sun is None:
         return
@@ -234,10 +235,12 @@ def widened_twin(ctx) -> None:
     own; None unless there are such estimators."""
     def split(n):
         return getattr(_holder(ctx, n), "sun", None)
+    # (split_follows: those whose real-sun test may have stopped for this
+    # twin; none where there is no sun to widen)
     tested = [n for n in ctx.estimators if n != REFERENCE
               and _outcome(ctx, n) == "inconclusive" and split(n) is not None
-              and split(n).sunless_outcome == "pass" and not samples_emitters(n)]
-    if not tested or not ctx.sun or not ctx.sun["texels"]:     # (no sun to widen)
+              and split(n).sunless_outcome == "pass" and split_follows(ctx, n)]
+    if not tested:
         return
     widened_map, facts = sun.widened(ctx.resolved["envmap"])
     ctx.widened = ctx.derive([*tested, REFERENCE], label=f"{ctx.id} widened sun",
