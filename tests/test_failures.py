@@ -13,8 +13,6 @@ cosine estimator whose pdf is 5 % off, or clamped, must come out "biased".
 import numpy as np
 import pytest
 
-import mitsuba as mi
-
 from mcillum.envmaps import procedural, sun
 from mcillum.integrators import registry
 from mcillum.validation import pipeline
@@ -277,6 +275,26 @@ def test_sun_cases_fail_the_controls(run_case, case):
         assert rows[name].verdict not in FAILING, (name, rows[name].verdict)
     for c in controls:
         assert rows[c].verdict == "biased", (c, rows[c].verdict)
+
+
+def test_heavy_tail_case_on_a_map_without_a_sun_is_not_split(run_case):
+    """A heavy-tail case given a map with no sun (courtyard: a user's
+    profile may name any map): nothing is split, no unseen sun excuses a
+    darker image, and a pdf 5 % high fails on the map itself."""
+    case = _case("failures.heavy_tail.lone_sphere_sunrise", label="lone_sphere_courtyard",
+                 defines={"envmap": "courtyard"}, seeds=16)
+    wrong = wrong_pdf_class("cosine_hemisphere", 1.05)
+    registry.register(wrong)
+    try:
+        rows, checks, _ = run_case(case, ["cosine_hemisphere", wrong.plugin_name, "path"])
+    finally:
+        registry.unregister(wrong.plugin_name)
+    for row in rows.values():
+        assert row.numbers.sun is None, row.name
+    assert rows["cosine_hemisphere"].verdict not in FAILING
+    bad = rows[wrong.plugin_name]
+    assert bad.verdict == "biased" and bad.numbers.test.outcome == "fail"
+    assert "sun" not in bad.numbers.test.reason
 
 
 def test_unreachable_case_refuses_and_measures_the_opt_in_bias(run_case):
