@@ -115,7 +115,7 @@ def test_path_beside_a_confirmation_renders_windows_around_the_pixels_read(llvm,
     control = sequential.control_renderer(ctx, "cosine_hemisphere")
     pixels = np.zeros((16, 16), bool)
     pixels[5, 6] = pixels[10, 9] = True
-    assert sequential.windows(pixels, 2) == [(4, 3, 5, 5), (7, 8, 5, 5)]
+    assert common.windows(pixels, 2) == [(4, 3, 5, 5), (7, 8, 5, 5)]
     k, spp = 16, 1024
     whole = control(1, spp, k)[1]
     around = np.full_like(whole, -1.0)

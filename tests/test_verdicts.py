@@ -20,7 +20,7 @@ import pytest
 from scipy import stats
 
 from mcillum.validation.checks import convergence, evidence
-from mcillum.validation.stages import sequential
+from mcillum.validation.stages import common, sequential
 from mcillum.validation.stats import replication, statistics, tails
 
 P, K, SPP, SIGMA = 16, 64, 16, 0.5
@@ -340,9 +340,13 @@ def test_a_test_the_sun_split_follows_stops_where_its_budget_cannot_decide():
     assert (d.outcome, stopped.looks, asked) == ("inconclusive", 1, [])
     assert d.samples_needed > sequential.BEYOND_BUDGET * stopped.budget
     assert f"the budget of {stopped.budget}" in d.reason and "budget spent" not in d.reason
+    # (the samples that would decide are named once, by the tail's reading)
+    assert "would decide" in d.reason and d.reason.count(f"{d.samples_needed:.2g}") == 1
     on, _ = sequential.settle([(SPP, x)], ref, reader(mean), more, EPSILON, 16)
     assert on.decision.outcome == "inconclusive" and on.looks > 1 and asked
     assert "budget spent" in on.decision.reason
+    n = on.decision.samples_needed
+    assert n is None or on.decision.reason.count(f"{n:.2g}") == 1
     missing, _ = sequential.settle([(SPP, renders(rng, tail=False))], ref, reader(mean),
                                    lambda look, spp, k: more(look, spp, k, tail=False),
                                    EPSILON, 16, split_follows=True)
@@ -754,14 +758,14 @@ def test_the_windows_around_the_pixels_read_merge_clip_and_give_up():
     whole film (None)."""
     px = np.zeros((32, 32), bool)
     px[0, 0] = True                                      # clipped at the corner
-    assert sequential.windows(px, 2) == [(0, 0, 3, 3)]
+    assert common.windows(px, 2) == [(0, 0, 3, 3)]
     px[3, 3] = True                                      # overlaps the first
-    assert sequential.windows(px, 2) == [(0, 0, 6, 6)]
+    assert common.windows(px, 2) == [(0, 0, 6, 6)]
     px[20, 25] = True
-    assert sequential.windows(px, 0) == [(0, 0, 1, 1), (3, 3, 1, 1), (25, 20, 1, 1)]
+    assert common.windows(px, 0) == [(0, 0, 1, 1), (3, 3, 1, 1), (25, 20, 1, 1)]
     many = np.zeros((32, 32), bool)
     many[::8, ::8] = True                                # 16 pixels, 8 apart
-    assert len(sequential.windows(many[:16, :16], 1)) == 4
-    assert sequential.windows(many, 1) is None
-    assert sequential.windows(np.ones((4, 4), bool)) is None
-    assert sequential.windows(np.zeros((4, 4), bool)) is None
+    assert len(common.windows(many[:16, :16], 1)) == 4
+    assert common.windows(many, 1) is None
+    assert common.windows(np.ones((4, 4), bool)) is None
+    assert common.windows(np.zeros((4, 4), bool)) is None

@@ -1,5 +1,6 @@
 """The stages every run shares: the scene and its estimators, kept renders,
-the reference, and letting the scene go.
+the reference, and letting the scene go; the windows of a film a
+crop renders (a confirming batch's path, sequential.py).
 
 A stage is ``stage(context) -> None``: it reads what earlier stages put on the
 :class:`~.context.Context` and adds what it finds. :mod:`~mcillum.validation.pipeline`
@@ -17,6 +18,8 @@ import gc
 import hashlib
 import json
 import os
+
+import numpy as np
 
 from mcillum.integrators import registry, scene_checks
 
@@ -94,6 +97,50 @@ def cropped(ctx, window: tuple[int, int, int, int]):
                                       film=sub.scene_spec.load_film)
     sub.render_key = f"{ctx.render_key}-crop{'.'.join(map(str, window))}"
     return sub
+
+
+#: Windows a control renders at most; where the pixels read need more, or
+#: the windows would cover half the film, it renders the whole film.
+WINDOWS = 4
+#: Pixels read beyond which the whole film is rendered without looking for
+#: windows (merging boxes costs the cube of their number).
+WINDOW_PIXELS = 64
+
+
+def windows(pixels, border: int = 0) -> list[tuple[int, int, int, int]] | None:
+    """(x, y, width, height) windows of a film that hold every pixel of
+    ``pixels`` (H, W) with ``border`` pixels around it (what the film's
+    reconstruction filter reaches: a window's edge pixels must see the
+    samples a whole film gives them), clipped to the film, overlapping ones
+    merged; None where more than :data:`WINDOWS` are needed or they would
+    cover half the film, or more than :data:`WINDOW_PIXELS` pixels are
+    read (render the film)."""
+    pixels = np.asarray(pixels, bool)
+    height, width = pixels.shape
+    if pixels.sum() > WINDOW_PIXELS:
+        return None
+    rows, cols = (a.tolist() for a in np.nonzero(pixels))
+    boxes = [(max(0, x - border), max(0, y - border), min(width, x + border + 1),
+              min(height, y + border + 1)) for y, x in zip(rows, cols)]
+    merged = True
+    while merged:
+        merged = False
+        for i, a in enumerate(boxes):
+            for j in range(i + 1, len(boxes)):
+                b = boxes[j]
+                if a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]:
+                    boxes[i] = (min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]),
+                                max(a[3], b[3]))
+                    del boxes[j]
+                    merged = True
+                    break
+            if merged:
+                break
+    area = sum((x1 - x0) * (y1 - y0) for x0, y0, x1, y1 in boxes)
+    if not boxes or len(boxes) > WINDOWS or 2 * area > height * width:
+        return None
+    return [(x0, y0, x1 - x0, y1 - y0) for x0, y0, x1, y1 in boxes]
+
 
 
 def release(ctx) -> None:

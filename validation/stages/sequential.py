@@ -144,14 +144,14 @@ def control_renderer(ctx, name: str):
     estimator ``name``: (spp, K renders) of `path`, the reference's
     integrator, on the same seeds as a confirming batch (kept under its
     shape: estimators confirm at their own spp). Given ``pixels`` (H, W),
-    the only ones read, it renders the :func:`windows` around them, placed
+    the only ones read, it renders the :func:`~.common.windows` around them, placed
     in a copy of ``around`` (the confirming batch: what lies outside is not
     path's, and nothing reads it): sun_sky's cosine sampling at 32² needed
     path at 16 × 32 768 spp for 1 pixel, 398 s for the whole film. A film
     with a crop window of its own (a user's scene file as a failure case)
     is rendered whole: its pixels are the window's. Given ``only_windows``
     it returns None wherever it would render the whole film (a crop window
-    of the film's own, or no :func:`windows` for ``pixels``). None
+    of the film's own, or no :func:`~.common.windows` for ``pixels``). None
     for path itself, for an estimator biased by design (it confirms nothing:
     :func:`settle`'s ``confirm``) or where the context does not render it."""
     if name == REFERENCE or REFERENCE not in ctx.integrators or evidence.by_design(name):
@@ -162,7 +162,7 @@ def control_renderer(ctx, name: str):
         film = None if ctx.scene is None else ctx.scene.sensors()[0].film()
         whole = film is not None and list(film.crop_offset()) == [0, 0] \
             and list(film.crop_size()) == list(film.size())
-        parts = windows(pixels, film.rfilter().border_size()) \
+        parts = common.windows(pixels, film.rfilter().border_size()) \
             if pixels is not None and whole else None
         if not parts:
             return None if only_windows else batch(ctx, REFERENCE, look, spp, k, tag)
@@ -173,49 +173,6 @@ def control_renderer(ctx, name: str):
                                                 f"{tag}-crop{x}.{y}.{w}.{h}")[1]
         return spp, images
     return control
-
-
-#: Windows a control renders at most; where the pixels read need more, or
-#: the windows would cover half the film, it renders the whole film.
-WINDOWS = 4
-#: Pixels read beyond which the whole film is rendered without looking for
-#: windows (merging boxes costs the cube of their number).
-WINDOW_PIXELS = 64
-
-
-def windows(pixels, border: int = 0) -> list[tuple[int, int, int, int]] | None:
-    """(x, y, width, height) windows of a film that hold every pixel of
-    ``pixels`` (H, W) with ``border`` pixels around it (what the film's
-    reconstruction filter reaches: a window's edge pixels must see the
-    samples a whole film gives them), clipped to the film, overlapping ones
-    merged; None where more than :data:`WINDOWS` are needed or they would
-    cover half the film, or more than :data:`WINDOW_PIXELS` pixels are
-    read (render the film)."""
-    pixels = np.asarray(pixels, bool)
-    height, width = pixels.shape
-    if pixels.sum() > WINDOW_PIXELS:
-        return None
-    rows, cols = (a.tolist() for a in np.nonzero(pixels))
-    boxes = [(max(0, x - border), max(0, y - border), min(width, x + border + 1),
-              min(height, y + border + 1)) for y, x in zip(rows, cols)]
-    merged = True
-    while merged:
-        merged = False
-        for i, a in enumerate(boxes):
-            for j in range(i + 1, len(boxes)):
-                b = boxes[j]
-                if a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]:
-                    boxes[i] = (min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]),
-                                max(a[3], b[3]))
-                    del boxes[j]
-                    merged = True
-                    break
-            if merged:
-                break
-    area = sum((x1 - x0) * (y1 - y0) for x0, y0, x1, y1 in boxes)
-    if not boxes or len(boxes) > WINDOWS or 2 * area > height * width:
-        return None
-    return [(x0, y0, x1 - x0, y1 - y0) for x0, y0, x1, y1 in boxes]
 
 
 #: A test stops before its samples per pixel exceed this many times the
@@ -283,7 +240,7 @@ def settle(first: list, reference, read, more, epsilon: float, growth: float,
         if split_follows and d.outcome == "inconclusive" \
                 and (d.samples_needed or 0) > BEYOND_BUDGET * limit:
             d.reason += (f"; stopped at {total} samples per pixel in {look + 1} look"
-                         f"{'s' if look else ''}: about {d.samples_needed:.2g} would decide, "
+                         f"{'s' if look else ''}: {_would_decide(d)}, "
                          f"{d.samples_needed / limit:.0f}× the budget of {limit}")
             break
         if d.outcome == "fail" and not confirm:
@@ -364,7 +321,7 @@ def _path_first(d, c, total: int, reference_spp: int | None, control) -> bool:
     if d.pooled is not None and np.any(d.pooled):
         return False
     pixels = _pixels(d, c)
-    return 0 < int(pixels.sum()) <= WINDOW_PIXELS
+    return 0 < int(pixels.sum()) <= common.WINDOW_PIXELS
 
 
 def _reference_at_fault(c, d, batches, reference, alpha: float, path) -> bool:
@@ -385,6 +342,13 @@ def _reference_at_fault(c, d, batches, reference, alpha: float, path) -> bool:
     return bool(shared.any()) and bool(np.array_equal(shared, pixels))
 
 
+def _would_decide(d) -> str:
+    """"about N would decide", or "those would decide" where the reading
+    already names N (a tail's "about N samples per pixel would see it")."""
+    n = f"{d.samples_needed:.2g}"
+    return "those would decide" if f"about {n} " in d.reason else f"about {n} would decide"
+
+
 def _spent(d, total: int, looks: int, start: int, capped: bool, reference_spp) -> str:
     """What an inconclusive reading adds when its budget is spent: the samples
     reached, whether the reference capped them, and what would decide."""
@@ -393,7 +357,7 @@ def _spent(d, total: int, looks: int, start: int, capped: bool, reference_spp) -
         text += f" (at most {REFERENCE_LEAD}× the reference's {reference_spp} spp)"
     if d.samples_needed is None:
         return text
-    text += f" (about {d.samples_needed:.2g} would decide; "
+    text += f" ({_would_decide(d)}; "
     if capped:
         return text + (f"a reference of about {d.samples_needed / REFERENCE_LEAD:.2g} spp "
                        "would allow it)")
