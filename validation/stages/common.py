@@ -142,7 +142,6 @@ def windows(pixels, border: int = 0) -> list[tuple[int, int, int, int]] | None:
     return [(x0, y0, x1 - x0, y1 - y0) for x0, y0, x1, y1 in boxes]
 
 
-
 def release(ctx) -> None:
     """Drop the loaded scene when nothing more is rendered from it: every
     live scene's shapes, BSDFs and emitters stay in Dr.Jit's instance

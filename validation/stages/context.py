@@ -89,8 +89,8 @@ class Context:
     rows: dict = field(default_factory=dict)          # tail_numbers …: name → CaseRow
     per_render: dict = field(default_factory=dict)    # tail_numbers: name → relMSE per seed
     sunless: "Context" = None       # sun_split.sunless_twin: on its map without the sun
-    sun: dict = None                # cases.test_bias, sun_split.find_sun: the sun's facts
-    sunless_map: str = None         # cases.test_bias, sun_split.find_sun: the map without it
+    sun: dict = None                # sun_split.find_sun: the sun's facts (None: no sun)
+    sunless_map: str = None         # sun_split.find_sun: the map without it
     widened: "Context" = None       # sun_split.widened_twin: with its sun widened
     #: sun_split.widened_twin: this context's map holds the widened sun (some
     #: pixels see it only through a sliver: checks.sun.partly_hidden)

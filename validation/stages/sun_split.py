@@ -110,7 +110,7 @@ def split_follows(ctx, name: str) -> bool:
     leaves inconclusive: the real map of a sun (found: ``ctx.sun``), and an
     estimator that does not sample the emitters (the widened twin tests
     only those)? A twin's own test has no split after it."""
-    return bool(ctx.sun and ctx.sun["texels"]) and not ctx.disc and not samples_emitters(name)
+    return ctx.sun is not None and not ctx.disc and not samples_emitters(name)
 
 
 # ------------------------- What each kind of context holds -----------------------
