@@ -464,13 +464,47 @@ def inspect_in_chromium(page, tmp_path):
         has_content = matplotlib.image.imread(shot).std() > 0.05
         errors = [e for e in driver.get_log("browser") if e["level"] == "SEVERE"]
         messages = [json.loads(e["message"])["message"] for e in driver.get_log("performance")]
-        urls = [m["params"]["request"]["url"] for m in messages
-                if m.get("method") == "Network.requestWillBeSent"]
-        # (chrome:// URLs are the browser's own start page, not the page's)
-        external = [u for u in urls if not u.startswith(("file:", "data:", "chrome:"))]
-        return widths, has_content, errors, external
+        return widths, has_content, errors, external_requests(messages)
     finally:
         driver.quit()
+
+
+def external_requests(messages):
+    """The URLs that a file:// page asked for beyond file: and data:, from
+    Chromium's performance log (DevTools ``Network.requestWillBeSent`` events).
+
+    Only requests made for a document opened from a file count: the browser's
+    own pages (its start page, and Chromium 150's new-tab page that asks for
+    ``chrome-untrusted://new-tab-page/one-google-bar``) are not the page's,
+    whatever scheme their requests use."""
+    return [m["params"]["request"]["url"] for m in messages
+            if m.get("method") == "Network.requestWillBeSent"
+            and m["params"].get("documentURL", "").startswith("file:")
+            and not m["params"]["request"]["url"].startswith(("file:", "data:"))]
+
+
+def _sent(url, document):
+    return {"method": "Network.requestWillBeSent",
+            "params": {"request": {"url": url}, "documentURL": document}}
+
+
+def test_only_the_pages_own_requests_count_as_external():
+    """The browser's own requests (any Chromium version's start page) are left
+    out; the page's file, data and network requests are told apart."""
+    page = "file:///tmp/report/index.html"
+    messages = [
+        _sent("chrome-untrusted://new-tab-page/one-google-bar?paramsencoded=",
+              "chrome://new-tab-page/"),
+        _sent("chrome://new-tab-page/", "chrome://new-tab-page/"),
+        _sent("https://www.google.com/async/newtab_promos", "chrome://new-tab-page/"),
+        _sent(page, page),
+        _sent("data:image/png;base64,AAAA", page),
+        _sent("http://127.0.0.1:9/x.png", page),
+        _sent("chrome-untrusted://anything", page),
+        {"method": "Network.responseReceived", "params": {}},
+    ]
+    assert external_requests(messages) == ["http://127.0.0.1:9/x.png",
+                                           "chrome-untrusted://anything"]
 
 
 @pytest.mark.browser
