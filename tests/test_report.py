@@ -273,6 +273,8 @@ def fake_run_dir(tmp_path, res=None):
         for e in s.estimators:
             noisy = (ref * rng.uniform(0.5, 1.5, ref.shape)).astype(np.float32)
             files.write_exr(d / f"{e.name}_spp{e.top.spp}.exr", noisy)
+            files.write_exr(d / f"{e.name}_spp{e.top.spp}_mean.exr",
+                            (ref * rng.uniform(0.9, 1.1, ref.shape)).astype(np.float32))
         (d / "display").mkdir()
         big = rng.uniform(0.2, 1.0, (32, 32, 3)).astype(np.float32)
         files.write_exr(d / "display" / "reference.exr", big)
@@ -319,11 +321,14 @@ def test_report_is_self_contained(tmp_path):
     assert "cosine hemisphere" in text                      # the estimator table
     assert "default-src 'none'" in text                     # the page may fetch nothing
     assert not re.search(r'(src|href)="(?!data:|#)', text)  # no external resources
-    assert "<script" not in text
+    # one script, inline (the viewers'), and each scene's viewer data
+    assert text.count("<script>") == 1 and "<script src" not in text
+    assert text.count('<script type="application/json" class=vdata>') == 2
     shown = data_images(text)
-    # per scene: reference and 3 estimators, 3 error maps, 3 FLIP maps, 4 crops
-    assert len(shown) == text.count("<img ") == 2 * (1 + 3 + 3 + 3 + 4)
-    assert "$" not in re.sub(r"<(svg|style).*?</\1>", "", text, flags=re.S)
+    # per scene 4 crops of the worst region; 3 pictures (reference, mean,
+    # error) for each of the 3 scene checks that need attention
+    assert len(shown) == text.count("<img ") == 2 * 4 + 3 * 3
+    assert "$" not in re.sub(r"<(svg|style|script)\b.*?</\1>", "", text, flags=re.S)
     for fmt, width, height, image in shown:
         assert fmt in ("png", "webp", "avif") and image.format.lower() == fmt
         image.load()                                        # decodable

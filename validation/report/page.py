@@ -2,10 +2,12 @@
 
 Reads the run's :class:`~mcillum.validation.results.Results`
 (``DIR/results.json``) and the EXR images beside it, renders nothing, and
-writes ``DIR/report/index.html`` (images as data URIs: renders as AVIF where
-that keeps their noise, else and maps as lossless WebP or PNG, see :mod:`.parts`;
-charts as inline SVG, inline CSS, no script, a Content-Security-Policy that
-forbids every external request).
+writes ``DIR/report/index.html``: at the top what needs attention and the
+estimators × scenes matrix (:mod:`.overview`); per scene a viewer of the
+equal-time renders as half floats (:mod:`.viewer`); small pictures as data
+URIs (AVIF where that keeps their noise, else lossless WebP or PNG, see
+:mod:`.parts`); charts as inline SVG; inline CSS and one inline script; a
+Content-Security-Policy that forbids every external request.
 
 Tone mapping, the same for every image of a scene: x · 2^EV, clipped to
 [0, 1], sRGB curve; EV puts the reference's 99th-percentile channel value at 1.
@@ -27,7 +29,7 @@ from mcillum.integrators.scene_checks import KIND_NAMES
 from .. import results
 from ..results import Results, layout
 from ..stats import metrics
-from . import charts
+from . import charts, overview, viewer
 from .failures import failures_section
 from .parts import swatch
 from .scenes import scene_section
@@ -89,7 +91,9 @@ def _write(run_dir: str, res: Results) -> str:
     toc = " · ".join(f"<a href='#{s.name}'>{s.name}</a>" for s in res.scenes)
     # (a run without a speed stage, e.g. failure cases only, has nothing to sum up)
     timed = any(s.speed is not None for s in res.scenes)
-    contents = " · ".join(([f"Scenes: {toc}"] if res.scenes else [])
+    contents = " · ".join(['<a href="#attention">needs attention</a>']
+                          + (['<a href="#matrix">estimators × scenes</a>'] if res.scenes else [])
+                          + ([f"Scenes: {toc}"] if res.scenes else [])
                           + ['<a href="#failures">where methods fail</a>']
                           + (['<a href="#summary">summary</a>'] if timed else []))
     summary = (f'<section id="summary"><h2>Summary across scenes</h2>'
@@ -98,8 +102,8 @@ def _write(run_dir: str, res: Results) -> str:
     body = "".join(scene_section(s, run_dir, colours, by_design) for s in res.scenes)
     page = f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8">
-<meta http-equiv="Content-Security-Policy" content="default-src 'none'; img-src data:; style-src 'unsafe-inline'">
-<title>mcillum validation report</title><style>{CSS}</style></head><body>
+<meta http-equiv="Content-Security-Policy" content="default-src 'none'; img-src data:; style-src 'unsafe-inline'; script-src 'unsafe-inline'">
+<title>mcillum validation report</title><style>{CSS}{overview.CSS}{viewer.CSS}</style></head><body>
 <h1>mcillum: estimators against Mitsuba's path tracer</h1>
 <p>{html.escape(res.created)} · {html.escape(m['platform'])}, {m['cpus']} CPUs ·
 variant <code>{html.escape(res.variant)}</code> · mitsuba {html.escape(res.mitsuba_version)},
@@ -107,6 +111,8 @@ drjit {html.escape(res.drjit_version)} · profile <b>{html.escape(res.profile)}<
 {_executor(res.executor)} · {html.escape(results.wall_text(res))} · report written {time.strftime('%Y-%m-%d %H:%M')}</p>
 <p class="verdict {verdict[0]}">{verdict[1]}</p>
 <p>{contents}</p>
+{overview.attention(res, run_dir)}
+{overview.matrix(res, colours)}
 <p>Each estimator renders every scene K times per spp; Mitsuba's <code>path</code> at the same
 max_depth is the reference. Unbiasedness: per-pixel Welch tests with each side's own variance
 (Šidák-corrected) and an image-mean test, family-wise α = {res.alpha} spent over the looks of
@@ -117,6 +123,7 @@ relMSE = mean (x−r)²/(r²+{metrics.EPSILON}); efficiency = 1/(relMSE·time).<
 {body}
 {failures_section(res, run_dir, colours)}
 {summary}
+<script>{viewer.SCRIPT}</script>
 </body></html>
 """
     target = layout.report_html(run_dir)

@@ -14,8 +14,10 @@ from mcillum import files, images
 from ..results import SceneResult, kinds_shown, layout, ranking_text, ratio_text, relmse_text
 from ..stats import metrics
 from . import charts
-from .parts import (ERROR_LEVELS, FLIP_LEVELS, error_map, flip_map, fmt, img, map_colours,
-                    outcome, render, swatch, worst_window)
+from .parts import (ERROR_LEVELS, FLIP_LEVELS, fmt, img, map_colours, outcome, render, swatch,
+                    worst_window)
+from .overview import evidence_anchor
+from .viewer import Shown, viewer
 
 
 def scene_section(scene: SceneResult, run_dir: str, colours: dict,
@@ -193,21 +195,20 @@ def _speed_section(scene: SceneResult, run_dir: str, colours: dict) -> str:
             flips[n] = files.read_exr(os.path.join(d, f"{n}.exr"), "flip")[0][..., 0]
     side = 256                              # 128² at 2×, 256² as it is
     shown = lambda a: render(images.tonemap(a, ev))  # noqa: E731
-    row = [img(shown(ref), f"reference (path)<br>{sp.reference.spp} spp", side)]
+    pictures = [Shown("reference", f"reference (path), {sp.reference.spp} spp", ref)]
     for n in names:
         x, meta = shots[n]
         flip = sp.mean_flip.get(n, np.nan)
-        row.append(img(shown(x), f"{swatch(n, colours)}<br>{meta['spp']} spp, "
-                        f"{meta['render_seconds'] * 1e3:.0f} ms"
-                        + ("" if np.isnan(flip) else f", FLIP {flip:.3f}"), side))
+        pictures.append(Shown(n, f"{swatch(n, colours)}: {meta['spp']} spp, "
+                                 f"{meta['render_seconds'] * 1e3:.0f} ms"
+                                 + ("" if np.isnan(flip) else f", mean FLIP {flip:.3f}"),
+                              x, flips.get(n)))
     errors = [metrics.relative_error_map(shots[n][0], ref) for n in names]
     positive = np.concatenate([e[e > 0].ravel() for e in errors] + [np.array([1e-3])])
     vmax = max(float(np.percentile(positive, 99)), 1e-2)
     vmin = vmax / 1e3
-    err_row = [img(error_map(e, vmin, vmax), f"{n}: mean {e.mean():.3g}", side)
-               for n, e in zip(names, errors)]
-    flip_row = [img(flip_map(flips[n]), f"{n}: mean FLIP {sp.mean_flip[n]:.3f}", side)
-                for n in names if n in flips]
+    means = ", ".join(f"{n} {e.mean():.3g}" for n, e in zip(names, errors))
+    flip_means = ", ".join(f"{n} {sp.mean_flip[n]:.3f}" for n in names if n in flips)
     y, x0, size = worst_window(errors)
     crop = lambda a: a[y:y + size, x0:x0 + size]  # noqa: E731
     crops = [img(shown(crop(ref)), "reference", side // 2)]
@@ -220,18 +221,20 @@ def _speed_section(scene: SceneResult, run_dir: str, colours: dict) -> str:
 <p>Every estimator got the time Mitsuba's <code>path</code> takes for {top.path_spp} spp;
 its spp come from its own cost model t = a + b·spp (a pilot at 1 and 16 spp, in the table
 below), corrected where its measured times missed the budget. Reference: <code>path</code>,
-{ref_info.spp} spp in {ref_info.passes} passes{capped}.{_timed_on(sp)} Tone mapping for every image:
-{_scaling(ev)}, clipped to [0, 1], sRGB. Captions: spp and the measured time of the
-render shown.</p>
-<div class=row>{''.join(row)}</div>
-<h4>Relative error |x−r|/(|r|+{metrics.EPSILON}) of these renders</h4>
-<div class=row>{''.join(err_row)}</div>
-<div class=bar>{charts.colour_bar(vmin, vmax, map_colours(ERROR_LEVELS),
+{ref_info.spp} spp in {ref_info.passes} passes{capped}.{_timed_on(sp)} Tone mapping: the
+viewer starts at {_scaling(ev)}, clipped to [0, 1], sRGB, dithered by half an 8-bit level.
+Captions: spp and the measured time of the render shown.</p>
+{viewer(f"{scene.name}-viewer", pictures, ev, (vmin, vmax))}
+<p class=desc>Keys 1–9 and 0 (or the buttons, or the arrows) flip between the images at one
+zoom and pan; the wheel zooms, a drag pans, a double-click fits. <b>i</b>, <b>e</b>, <b>f</b>:
+the image, its relative error |x−r|/(|r|+{metrics.EPSILON}) (mean over channels, the shared
+logarithmic scale below), its FLIP map (HDR mode: flip-evaluator tone-maps both images, ACES,
+exposures from the reference; 0 = no visible difference). <b>+</b>/<b>−</b>: exposure. The
+data are the renders' own, as half floats. Mean relative error: {means}. Mean FLIP:
+{flip_means or 'undefined here (the reference is black)'}.</p>
+<div class=row><div class=bar>{charts.colour_bar(vmin, vmax, map_colours(ERROR_LEVELS),
                                   "relative error (shared scale)")}</div>
-<h4>FLIP (HDR mode: flip-evaluator tone-maps both images, ACES, exposures from the
-reference; 0 = no visible difference, 1 = the largest)</h4>
-<div class=row>{''.join(flip_row) or '<p>FLIP is undefined here: the reference is black.</p>'}</div>
-<div class=bar>{charts.colour_bar(0.0, 1.0, map_colours(FLIP_LEVELS), "FLIP", log=False)}</div>
+<div class=bar>{charts.colour_bar(0.0, 1.0, map_colours(FLIP_LEVELS), "FLIP", log=False)}</div></div>
 <h4>Worst region ({size}×{size} px at x={x0}, y={y}, by summed relative error)</h4>
 <div class=row>{''.join(crops)}</div>
 <h4>Accuracy against time</h4>
@@ -290,7 +293,7 @@ def _statistics_section(scene: SceneResult, run_dir: str, colours: dict,
         else:
             tested = (_unbiased_cell(u), f"{outcome(c.outcome, c.message)} {slope}")
         rows.append(
-            f"<tr><td>{swatch(est.name, colours)}</td>"
+            f"<tr id='{evidence_anchor(scene.name, est.name)}'><td>{swatch(est.name, colours)}</td>"
             f"<td>{fmt(top.relmse)} ({fmt(top.relmse / best_rel if best_rel else None, '.2f')}×)</td>"
             f"<td>{top.bias:+.2e} ± {top.bias_se:.1e}</td>"
             f"<td>{tested[0]}</td><td>{tested[1]}</td></tr>")

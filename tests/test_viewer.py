@@ -1,0 +1,193 @@
+"""The report's image viewer: its data are the renders (half floats, exact
+to binary16 rounding), and in headless Chromium (marked `browser`) keys flip
+the image, the pointer reads the EXR's values, the exposure changes what is
+shown, a flat render shows no contour, and the overview links to evidence."""
+
+import json
+import os
+import re
+
+import numpy as np
+import pytest
+
+from mcillum import files
+from mcillum.validation import report
+from mcillum.validation.report import viewer
+
+from test_report import CHROMEDRIVER, CHROMIUM, fake_run_dir, needs_browser, synthetic_results
+
+
+def test_half_floats_round_trip_exactly_to_binary16():
+    """pack/unpack gives float16(x) for every pixel, negatives and extremes
+    included; beyond ±65504 is clamped there, NaN is 0."""
+    rng = np.random.default_rng(3)
+    x = (rng.lognormal(0, 3, (17, 23, 3)) * rng.choice([-1, 1], (17, 23, 3))).astype(np.float32)
+    x[0, 0] = [1e6, -1e6, np.nan]
+    x[1, 1] = [1e-7, 6e-8, 0.0]
+    back = viewer.unpack_half(viewer.pack_half(x), 17, 23)
+    want = np.clip(np.nan_to_num(x), -viewer.HALF_MAX, viewer.HALF_MAX).astype(np.float16)
+    np.testing.assert_array_equal(back, want.astype(np.float32))
+    with pytest.raises(ValueError, match="half floats"):
+        viewer.unpack_half(viewer.pack_half(x), 17, 22)
+
+
+def test_a_viewer_carries_every_image_and_refuses_mixed_sizes():
+    a = np.ones((4, 5, 3), np.float32)
+    html = viewer.viewer("s-viewer", [viewer.Shown("reference", "r", a),
+                                      viewer.Shown("path", "p", 2 * a, np.zeros((4, 5)))],
+                         0.0, (1e-3, 1.0))
+    spec = json.loads(re.search(r'class=vdata>(.*?)</script>', html, re.S).group(1))
+    assert [i["label"] for i in spec["images"]] == ["reference", "path"]
+    assert spec["images"][0]["flip"] is None and spec["images"][1]["flip"]
+    np.testing.assert_array_equal(viewer.unpack_half(spec["images"][1]["data"], 4, 5), 2 * a)
+    with pytest.raises(ValueError, match="one size"):
+        viewer.viewer("s", [viewer.Shown("a", "", a), viewer.Shown("b", "", a[:3])], 0, (1, 2))
+
+
+def test_the_report_ships_each_display_render_as_its_data(tmp_path):
+    """The viewer's data of every render equal the display EXRs to binary16."""
+    run = fake_run_dir(tmp_path)
+    text = open(report.build(str(run)), encoding="utf-8").read()
+    blocks = re.findall(r'<div class=viewer id="([^"]+)-viewer".*?class=vdata>(.*?)</script>',
+                        text, re.S)
+    assert [b[0] for b in blocks] == ["alpha", "beta"]
+    for scene, data in blocks:
+        spec = json.loads(data)
+        d = run / "images" / scene / "display"
+        for im in spec["images"]:
+            name = "reference" if im["label"] == "reference" else im["label"]
+            exr = files.read_exr(d / f"{name}.exr")[0][..., :3]
+            got = viewer.unpack_half(im["data"], spec["h"], spec["w"])
+            np.testing.assert_array_equal(got, exr.astype(np.float16).astype(np.float32))
+
+
+# ------------------------------ In a real browser ------------------------------
+
+def _driver(tmp_path):
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    opts = webdriver.ChromeOptions()
+    opts.binary_location = CHROMIUM
+    for flag in ("--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run",
+                 "--disable-background-networking", "--disable-component-update",
+                 "--window-size=1400,1400", "--force-device-scale-factor=1",
+                 f"--user-data-dir={tmp_path / 'profile'}"):
+        opts.add_argument(flag)
+    opts.set_capability("goog:loggingPrefs", {"browser": "ALL"})
+    return webdriver.Chrome(service=Service(CHROMEDRIVER), options=opts)
+
+
+def _ready(driver, timeout=20):
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    WebDriverWait(driver, timeout).until(lambda d: d.execute_script(
+        "return [...document.querySelectorAll('.viewer')].every(v => v.dataset.ready)"))
+
+
+CANVAS_SUM = ("const c = arguments[0].querySelector('canvas');"
+              "const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;"
+              "let s = 0; for (let i = 0; i < d.length; i += 4) s += d[i] + d[i+1] + d[i+2];"
+              "return s;")
+
+
+def _hover(driver, root, x, y):
+    """Move the pointer over pixel (x, y) of ``root``'s viewer."""
+    from selenium.webdriver.common.action_chains import ActionChains
+
+    port = root.find_element("css selector", ".vport")
+    st = driver.execute_script("const s = arguments[0].viewer.state; return [s.x, s.y, s.zoom,"
+                               " arguments[0].querySelector('.vport').clientWidth,"
+                               " arguments[0].querySelector('.vport').clientHeight];", root)
+    sx, sy, zoom, w, h = st
+    ActionChains(driver).move_to_element_with_offset(
+        port, int(sx + (x + 0.5) * zoom - w / 2), int(sy + (y + 0.5) * zoom - h / 2)).perform()
+
+
+@pytest.mark.browser
+@needs_browser
+def test_keys_pointer_and_exposure_work_in_chromium(tmp_path):
+    """Keys flip the shown image; the hovered pixel's value is the EXR's to
+    binary16 rounding; + raises the exposure and the shown pixels; the
+    overview's failing check links to an element of the page."""
+    run = fake_run_dir(tmp_path)
+    page = report.build(str(run))
+    driver = _driver(tmp_path)
+    try:
+        driver.get("file://" + os.path.abspath(page))
+        _ready(driver)
+        root = driver.find_element("css selector", ".viewer")
+        driver.execute_script("arguments[0].scrollIntoView()", root)
+        first = driver.execute_script(CANVAS_SUM, root)
+        root.click()
+        root.send_keys("2")
+        assert driver.execute_script("return arguments[0].viewer.state.i", root) == 1
+        second = driver.execute_script(CANVAS_SUM, root)
+        assert second != first                                   # another image is shown
+        label = root.find_element("css selector", "button.on").text
+        assert label.endswith("uniform_hemisphere")
+
+        exr = files.read_exr(run / "images" / "alpha" / "display" / "uniform_hemisphere.exr")[0]
+        for x, y in ((3, 5), (30, 1)):
+            _hover(driver, root, x, y)
+            cells = root.find_elements("css selector", ".vpix tr.on td.v")
+            shown = np.array([float(c.text) for c in cells])
+            want = exr[y, x, :3].astype(np.float16).astype(np.float64)
+            # the page prints 5 significant digits of the binary16 value
+            np.testing.assert_allclose(shown, want, rtol=1e-4)
+            assert abs(shown - exr[y, x, :3]).max() <= 2 ** -11 * abs(exr[y, x, :3]).max() * 1.01
+
+        root.send_keys("+")
+        assert driver.execute_script(CANVAS_SUM, root) > second  # brighter
+        root.send_keys("e")
+        assert driver.execute_script("return arguments[0].viewer.state.mode", root) == "error"
+
+        link = driver.find_element("css selector", "#attention a")
+        target = link.get_attribute("href").split("#", 1)[1]
+        assert driver.execute_script("return !!document.getElementById(arguments[0])", target)
+        link.click()
+        assert driver.execute_script("return location.hash") == "#" + target
+        severe = [e for e in driver.get_log("browser") if e["level"] == "SEVERE"]
+        assert not severe, severe
+        shot = os.environ.get("MCILLUM_VIEWER_SHOT")
+        if shot:                                                 # for a person to look at
+            driver.execute_script("arguments[0].scrollIntoView()", root)
+            driver.save_screenshot(shot)
+    finally:
+        driver.quit()
+
+
+@pytest.mark.browser
+@needs_browser
+def test_a_flat_render_shows_no_contour(tmp_path):
+    """A render flat to ±0.1 % (as furnace_sphere's renders are) is shown
+    without structure: every column's mean within half a level of every
+    other's, and each pixel within one level of the flat value's."""
+    res = synthetic_results(scenes=("flat",))
+    run = fake_run_dir(tmp_path, res)
+    rng = np.random.default_rng(5)
+    d = run / "images" / "flat" / "display"
+    for name in ["reference"] + [e.name for e in res.scenes[0].estimators]:
+        flat = (0.37 * (1 + 1e-3 * rng.uniform(-1, 1, (32, 32, 3)))).astype(np.float32)
+        meta = {} if name == "reference" else {"spp": 3, "render_seconds": 0.001}
+        layers = None if name == "reference" else {"flip": np.zeros((32, 32, 1), np.float32)}
+        files.write_exr(d / f"{name}.exr", flat, meta, layers)
+    page = report.build(str(run))
+    driver = _driver(tmp_path)
+    try:
+        driver.get("file://" + os.path.abspath(page))
+        _ready(driver)
+        root = driver.find_element("css selector", ".viewer")
+        ev = driver.execute_script("return arguments[0].viewer.state.ev", root)
+        pixels = np.array(driver.execute_script(
+            "const c = arguments[0].querySelector('canvas');"
+            "return Array.from(c.getContext('2d').getImageData(0, 0, c.width, c.height).data);",
+            root), float).reshape(32, 32, 4)[..., :3]
+    finally:
+        driver.quit()
+    v = min(0.37 * 2 ** ev, 1.0)
+    level = 255 * (12.92 * v if v <= 0.0031308 else 1.055 * v ** (1 / 2.4) - 0.055)
+    assert np.abs(pixels - level).max() <= 1.0 + 255 * 2e-3
+    columns = pixels.mean(axis=(0, 2))
+    assert columns.max() - columns.min() <= 0.5
+    assert abs(pixels.mean() - level) <= 0.25
