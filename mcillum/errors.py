@@ -7,7 +7,9 @@
   command line alone shows it (exit code 2 in the CLI: an unknown integrator
   or parameter, an output path that cannot be written) or it was found while
   loading or rendering (exit code 1: a broken scene file, an unknown
-  $-parameter, a refused environment map).
+  $-parameter, a refused environment map). :class:`NoSignal` is found while
+  rendering but exits 2 all the same: the scene as given cannot be validated
+  at all (a black reference, which every estimator would match).
 * :class:`Interrupted` — Ctrl-C or SIGTERM, with what was left and what to do;
   :func:`sigterm_as_interrupt` turns SIGTERM into a KeyboardInterrupt
   (:class:`Terminated`), so that every clean-up path of Ctrl-C runs for it too.
@@ -44,6 +46,16 @@ class IntegratorError(UserError):
 
 class SceneError(UserError):
     """A scene that cannot be loaded as given."""
+
+
+class NoSignal(SceneError):
+    """A user's scene whose reference is black in every pixel (no emitter,
+    or none the sensor sees): nothing to validate, since any estimator
+    matches black. ``usage`` is True so that the CLI exits 2 as for a usage
+    error: no check of such a scene could fail, and a run that reported
+    them would pass vacuously (issue 66)."""
+
+    usage = True
 
 
 class Interrupted(Exception):

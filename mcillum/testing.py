@@ -141,7 +141,9 @@ def compare(scene, integrator: str, *, reference: str = REFERENCE,
     ``path``, a bundled name the profile does not compare, or scene-file
     settings given for a bundled scene; and what the validation raises for
     an unknown integrator, a broken scene or plugin
-    (:class:`~mcillum.errors.UserError`).
+    (:class:`~mcillum.errors.UserError`), or a scene whose reference is
+    black in every pixel, which no check could fail
+    (:class:`~mcillum.errors.NoSignal`: no emitter, or none the sensor sees).
     """
     from .validation import pipeline
     from .validation.plan import profiles, scenes

@@ -3,11 +3,14 @@ synthetic timings and errors whose truth is known: the intervals cover it
 as often as they claim, exclude a wrong value, and the ranking ties only
 what it cannot tell apart. No rendering."""
 
+import math
+
 import numpy as np
 import pytest
 from scipy import stats
 
 from mcillum.validation.results import Interval
+from mcillum.validation.run.stacks import Stack
 from mcillum.validation.stages import budgets, speed
 from mcillum.validation.stats import costs, metrics, tails
 
@@ -404,3 +407,65 @@ def test_a_relmse_with_a_lower_bound_only_reads_so():
     for high in (np.inf, np.nan):
         run.relmse_ci = Interval(0.143, high)
         assert relmse_text(run) == "0.21 [0.143, ∞)"
+
+
+def test_a_render_that_cannot_meet_its_budget_has_its_efficiency_withheld(monkeypatch):
+    """The speed stage (budgets.render, then speed.measure_speed) on fake
+    renders whose timer is known: `path` and `mis` take what their cost
+    model says, `emitter_sampling`'s timer reads a tenth of the budget
+    whatever its spp (a busy core's launch, as cap_plane's 2 spp in 10 ms
+    against 114 ms). Its corrections are bounded (CORRECTIONS), all miss,
+    and its efficiency ÷ path is withheld (NaN, kind off_budget, a reason
+    the summary table shows) and left out of the ranking, while `mis`,
+    on budget, keeps its figure and interval."""
+    from types import SimpleNamespace
+
+    from mcillum.validation.results import json_io, speed_summary
+    from mcillum.validation.run import references
+
+    res, k, fixed, per_spp = 16, 6, 1e-3, 2e-3
+    rng = np.random.default_rng(66)
+    truth = np.ones((res, res, 3))
+    sigma = {"path": 1.0, "mis": 0.5, "emitter_sampling": 0.3}   # noise of one sample
+    budget = fixed + per_spp * 16                                 # path's 16 spp
+
+    def fake_renders(sub, integrators, spps, renders, seeds_, label="", timed=False):
+        out = {}
+        for n, spp in spps.items():
+            noise = sigma[n] / np.sqrt(spp) * rng.standard_normal((renders, res, res, 3))
+            t = 0.1 * budget if n == "emitter_sampling" else fixed + per_spp * spp
+            out[n] = Stack(n, spp, (truth + noise).astype(np.float32),
+                           [t * (1 + 0.01 * i) for i in range(renders)], others=[None] * renders)
+        return out
+
+    monkeypatch.setattr(budgets.stacks, "interleaved", fake_renders)
+    monkeypatch.setattr(budgets.timing, "warm", lambda *a, **kw: {})
+    timings = {n: {1: [fixed + per_spp] * 3, 16: [fixed + 16 * per_spp] * 3} for n in sigma}
+    executor = SimpleNamespace(timed_on=lambda: ["here"])
+    sub = SimpleNamespace(run=SimpleNamespace(executor=executor), label="fake",
+                          integrators=dict.fromkeys(sigma), reference=references.Reference(
+                              truth, np.full(truth.shape, 1e-8), 64, 64, 1.0,
+                              np.ones((64, 3))))
+    ctx = SimpleNamespace(
+        display=sub, plan=SimpleNamespace(display=SimpleNamespace(renders=k, res=res)),
+        costs={n: costs.fit_cost({s: [min(t)] * 2 for s, t in v.items()})
+               for n, v in timings.items()},
+        timings=timings, budget_path_spp=[16], budget_stacks=[], budget_tries=[], notes=[],
+        timing_load=[], timed_on=[], flip_maps={})
+    assert budgets.render(ctx)
+    tries = ctx.budget_tries[0]
+    assert len(tries["emitter_sampling"]) == 1 + budgets.CORRECTIONS
+    assert len(tries["mis"]) == 1 and len(tries["path"]) == 1
+    speed.measure_speed(ctx)
+    ratios = ctx.speed.efficiency_vs_path
+    off, on = ratios["emitter_sampling"], ratios["mis"]
+    assert off.kind == "off_budget" and math.isnan(off.ratio), off
+    assert "off budget" in off.reason and f"{budget * 1e3:.3g} ms budget" in off.reason
+    assert json_io.to_json(off)["ratio"] is None and json_io.to_json(off)["ci"] == [None, None]
+    assert on.kind == "unbiased" and 0 < on.ci.low < on.ratio < on.ci.high < np.inf, on
+    assert [p.estimator for p in ctx.speed.ranking] == ["mis", "path"]
+    rows = {line.split(" | ")[0][2:]: line for line in speed_summary(ctx.speed)
+            if line.startswith("| ") and " | " in line}
+    assert "withheld: off budget" in rows["emitter_sampling"]
+    assert f"{on.ratio:.3g} [" in rows["mis"]
+    assert any("emitter_sampling: efficiency ÷ path withheld" in n for n in ctx.speed.notes)

@@ -5,6 +5,7 @@ sends a packet off this machine."""
 
 import base64
 import dataclasses
+import html
 import io
 import json
 import math
@@ -617,3 +618,33 @@ def test_a_heavy_tailed_figure_reads_as_a_bound_everywhere(tmp_path):
     assert "(heavy-tailed)" in page and "∞)" in page
     assert "?: heavy-tailed, no bound" in charts.efficiency_summary(back, COLOURS)
     assert "<svg" in charts.error_vs_time(back.scenes[0], COLOURS)
+
+
+def test_a_figure_withheld_off_its_budget_reads_withheld_everywhere(tmp_path):
+    """An efficiency withheld off its budget (kind off_budget, ratio and
+    interval NaN, a reason; not ranked: stages/speed.py off_budget):
+    results.json holds it as the schema says (null), it reads back, and the
+    summary, the page and the charts show no interval for it, the reason
+    instead, while the other estimators keep theirs."""
+    import jsonschema
+    from mcillum.validation.results import Interval
+    res = synthetic_results()
+    speed = res.scenes[0].speed
+    why = "off budget: median 10 ms at 2 spp against a 114 ms budget (×0.088)"
+    speed.efficiency_vs_path["uniform_hemisphere"] = Ratio(
+        ratio=math.nan, ci=Interval(math.nan, math.nan), kind="off_budget", reason=why)
+    speed.ranking = [p for p in speed.ranking if p.estimator != "uniform_hemisphere"]
+    run_dir = fake_run_dir(tmp_path, res)
+    jsonschema.validate(json.loads((run_dir / "results.json").read_text()),
+                        json.load(open(results.SCHEMA_FILE)))
+    back = results.load(str(run_dir)).scenes[0].speed
+    withheld = back.efficiency_vs_path["uniform_hemisphere"]
+    assert withheld.kind == "off_budget" and math.isnan(withheld.ratio)
+    assert results.ratio_text(withheld) == f"withheld: {why}"
+    summary = "\n".join(results.speed_summary(back))
+    assert f"withheld: {why}" in summary and "off-budget: withheld" in summary
+    kept = back.efficiency_vs_path["cosine_hemisphere"]
+    assert f"{kept.ratio:.3g} [{kept.ci.low:.3g}, {kept.ci.high:.3g}]" in summary
+    page = open(report.build(str(run_dir)), encoding="utf-8").read()
+    assert html.escape(f"withheld: {why}") in page
+    assert "<svg" in charts.efficiency_summary(results.load(str(run_dir)), COLOURS)

@@ -352,3 +352,96 @@ def test_files_found_through_path_belong_to_the_scene(llvm, tmp_path):
         str(tmp_path / "common" / "textures" / "roughness.exr"))
     assert references.cache_key(path, {}, {"max_depth": 2}, mi.variant(),
                                 film=(8, 8)) != before
+
+
+# --------------------------- A scene with no signal -----------------------------
+
+def dark_scene(folder, emitter: str = "", target: str = "0, 0, 0") -> str:
+    """A stock Mitsuba scene: a sensor at z = 4 looking at ``target``, a
+    diffuse sphere at the origin, and ``emitter`` (none by default)."""
+    path = folder / "dark.xml"
+    path.write_text(textwrap.dedent(f"""\
+        <scene version="3.0.0">
+            <integrator type="path"><integer name="max_depth" value="3"/></integrator>
+            <sensor type="perspective">
+                <float name="fov" value="40"/>
+                <transform name="to_world">
+                    <lookat origin="0, 0, 4" target="{target}" up="0, 1, 0"/>
+                </transform>
+                <sampler type="independent"><integer name="sample_count" value="16"/></sampler>
+                <film type="hdrfilm">
+                    <integer name="width" value="32"/><integer name="height" value="32"/>
+                </film>
+            </sensor>
+            <shape type="sphere"><bsdf type="diffuse"/></shape>
+            {emitter}
+        </scene>
+        """))
+    return str(path)
+
+
+#: A point light between the camera and the sphere, lighting its front.
+LIGHT = ('<emitter type="point"><point name="position" x="0" y="2" z="2"/>'
+         '<rgb name="intensity" value="10"/></emitter>')
+
+
+def test_a_scene_without_an_emitter_is_refused_with_exit_2_naming_it(llvm, tmp_path,
+                                                                     capsys):
+    """A sensor and a sphere, no emitter: path's reference is black, every
+    check would pass against it (it did: "PASSED: pass 21 of 21"). The
+    run is refused, exit 2, naming the file and what to add."""
+    scene = dark_scene(tmp_path)
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["validate", scene, "--estimators", "cosine_hemisphere", "--no-speed",
+                  "--res", "8", "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2, err
+    assert f"{scene}: nothing to validate" in err and "black in every pixel" in err
+    assert "the scene has no emitter" in err and "add an emitter" in err
+
+
+def test_an_emitter_behind_a_camera_that_looks_away_is_refused(llvm, tmp_path):
+    """The light and the sphere behind the camera: the scene has an emitter,
+    but the image is black; compare() raises NoSignal naming the sensor's
+    direction to check, and no check is reported."""
+    from mcillum.errors import NoSignal
+    from mcillum.testing import compare
+
+    scene = dark_scene(tmp_path, LIGHT, target="0, 0, 8")
+    with pytest.raises(NoSignal, match="its 1 emitter lights nothing the sensor sees") as err:
+        compare(scene, "emitter_sampling", res=8, out_dir=tmp_path / "out",
+                cache_dir=tmp_path / "cache")
+    assert "lookat" in str(err.value) and str(err.value).startswith(scene)
+    assert NoSignal.usage                  # (the CLI's exit 2)
+
+
+def test_the_same_scene_lit_still_validates(llvm, tmp_path):
+    """The negative control: the camera turned to the sphere the light
+    lights; the run goes on and passes."""
+    from mcillum.testing import assert_passes, compare
+
+    c = compare(dark_scene(tmp_path, LIGHT), "emitter_sampling", res=8,
+                out_dir=tmp_path / "out", cache_dir=tmp_path / "cache")
+    assert c.results.scenes[0].reference.spp > 0
+    assert_passes(c)
+
+
+def test_a_bundled_scene_with_a_black_reference_is_an_internal_error():
+    """The profile's own scenes are all lit: a black reference there is a
+    bug (RuntimeError), not the user's mistake (NoSignal, exit 2)."""
+    from types import SimpleNamespace
+
+    from mcillum.errors import NoSignal
+    from mcillum.validation.stages import common
+
+    ref = SimpleNamespace(mean=np.zeros((4, 4, 3)), spp=64)
+    ctx = SimpleNamespace(reference=ref, id="lone_sphere", defines={"envmap": "sg"},
+                          info=SimpleNamespace(bundled=True, path="scenes/lone_sphere.xml"),
+                          scene=None, max_depth=2)
+    with pytest.raises(RuntimeError, match="internal error: bundled scene 'lone_sphere'"):
+        common.require_signal(ctx)
+    ctx.info.bundled = False
+    with pytest.raises(NoSignal, match="scenes/lone_sphere.xml: nothing to validate"):
+        common.require_signal(ctx)
+    ref.mean[2, 3, 1] = 1e-6               # one dim pixel channel is signal
+    common.require_signal(ctx)

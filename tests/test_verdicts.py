@@ -769,3 +769,26 @@ def test_the_windows_around_the_pixels_read_merge_clip_and_give_up():
     assert common.windows(many, 1) is None
     assert common.windows(np.ones((4, 4), bool)) is None
     assert common.windows(np.zeros((4, 4), bool)) is None
+
+
+def test_black_renders_against_a_black_reference_fail_as_nothing_tested():
+    """An estimator's renders and the reference identically zero where it is
+    tested: the test finds no rejection, and the pass would be vacuous, so
+    the decision is a fail that says nothing was tested (no further batch
+    is rendered for it). The same renders lit against a lit reference pass."""
+    black = np.zeros((K, P, P, 3))
+    ref = statistics.Moments(np.zeros((P, P, 3)), np.zeros((P, P, 3)), 10_000, np.zeros(3),
+                             np.zeros(3))
+
+    def more(look, spp, k):
+        raise AssertionError("a vacuous pass is not rendered on")
+
+    got, _ = sequential.settle([(SPP, black)], ref, reader(np.zeros((P, P, 3))), more,
+                               EPSILON, GROWTH)
+    assert got.decision.outcome == "fail" and "nothing tested" in got.decision.reason
+    rng = np.random.default_rng(3)
+    lit = 1.0 + rng.normal(0, 0.01, (K, P, P, 3))
+    mean = np.ones((P, P, 3))
+    passed, _ = sequential.settle([(SPP, lit)], fixed(mean), reader(mean), more, EPSILON,
+                                  GROWTH)
+    assert passed.decision.outcome == "pass", passed.decision.reason

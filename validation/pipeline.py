@@ -5,8 +5,8 @@ For every scene of a profile and every case of its failures group, a
 below), then the checks decide (:mod:`.checks`):
 
     scene comparison   load → choose estimators → K renders per rung of an spp
-                       ladder → reference → measure → settle (sequential:
-                       unbiasedness, then convergence) →
+                       ladder → reference (a black one refused) → measure →
+                       settle (sequential: unbiasedness, then convergence) →
                        quadrature (estimators of N directions: equal rays, bias
                        against N, calibration) → learning (estimators that
                        learn their pdf, where the plan asks: error against
@@ -18,7 +18,8 @@ below), then the checks decide (:mod:`.checks`):
                        (stages/speed.py): cost model → equal-time
                        renders → reference → relMSE, efficiency, ranking, FLIP
                        → images
-    failure case       load → refusals → K seeds → reference → tail numbers →
+    failure case       load → refusals → K seeds → reference (a black one
+                       refused) → tail numbers →
                        bias test (sequential) → release → the sunless twin
                        (a heavy-tail case on a map with a sun: the map without
                        it, through SUNLESS) → sun split → the widened twin
@@ -60,22 +61,27 @@ from .stages import cases, common, learning, quadrature, scene, speed, sun_split
 from .stages.context import Context, Run
 from .stats import metrics, statistics
 
+# (require_signal after each reference: a black one passes every check)
 SCENE = (common.load, common.choose_estimators, scene.render_ladder, common.build_reference,
-         scene.measure, scene.settle, scene.settle_convergence, sun_split.note_unsplit_sun,
-         quadrature.measure, learning.measure, common.release, scene.save_images,
-         sun_split.sunless_twin)
+         common.require_signal, scene.measure, scene.settle, scene.settle_convergence,
+         sun_split.note_unsplit_sun, quadrature.measure, learning.measure, common.release,
+         scene.save_images, sun_split.sunless_twin)
 SPEED = (speed.display, speed.time_costs, speed.render_budgets, speed.display_reference,
          speed.release_display, speed.measure_speed, speed.save_display)
 CASE = (common.load, cases.probe_refusals, cases.render_seeds, common.build_reference,
-        cases.tail_numbers, cases.test_bias, common.release, sun_split.sunless_twin)
+        common.require_signal, cases.tail_numbers, cases.test_bias, common.release,
+        sun_split.sunless_twin)
 #: The sunless twin of a heavy-tail case or of a scene comparison on a map
 #: with a sun (its own context: ``ctx.sunless``), and its widened twin
 #: (``ctx.widened``), whose reference reaches the budget (stages/sun_split.py).
+#: No require_signal: a twin's map is derived from one whose reference is
+#: lit, and a black twin's pass is failed by the check (evidence.nothing_tested).
 SUNLESS = (common.load, common.choose_estimators, cases.render_seeds, common.build_reference)
 WIDENED = (common.load, common.choose_estimators, cases.render_seeds,
            sun_split.widened_reference)
 SWEEP_POINT = (common.load, common.choose_estimators, cases.render_seeds,
-               common.build_reference, cases.tail_numbers, common.release)
+               common.build_reference, common.require_signal, cases.tail_numbers,
+               common.release)
 
 
 def run_stages(stage_list, ctx: Context) -> Context:

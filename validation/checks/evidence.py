@@ -12,6 +12,7 @@ they are read with the sun in mind (checks/sun.py).
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -296,6 +297,26 @@ def settle(d: Decision, c, epsilon: float, samples: int = 0) -> Decision:
     elif d.outcome == "fail":
         d.reason += f"; {bias}"
     return d
+
+
+def nothing_tested(d: Decision, c) -> Decision:
+    """``d``, but a pass against a reference whose image mean is zero in
+    every channel (comparison ``c``) becomes a fail: the renders matched a
+    black reference, so they were black too, and no bias could have been
+    seen; the test could not have failed. A fail, not a refusal (an
+    error): the run's other checks keep their results, and the check names
+    itself (exit 1); not inconclusive, which exits 0 without ``--strict``
+    and would pass vacuously again. A user's scene whose whole reference is
+    black is refused before any check (stages/common.py: require_signal);
+    this catches what is tested on a black image all the same (a twin's
+    map, a profile file's case)."""
+    ref = getattr(c, "reference_image_mean", None)
+    if d.outcome != "pass" or ref is None or np.any(np.asarray(ref, np.float64) > 0):
+        return d
+    return dataclasses.replace(d, outcome="fail", reason=(
+        "nothing tested: the reference and the renders are zero in every pixel, and black "
+        "matches black whatever the estimator does; light the scene (an emitter the "
+        "sensor sees) to test it"))
 
 
 def _signed(rel: np.ndarray) -> str:

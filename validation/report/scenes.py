@@ -249,13 +249,14 @@ def _speed_table(sp, colours: dict) -> str:
     rank = {p.estimator: p for p in sp.ranking}
     rows = []
     for n, run in top.estimators.items():
-        c, r, p = sp.cost_model[n], sp.efficiency_vs_path[n], rank[n]
-        tied = f" (tie: {', '.join(p.tied_with)})" if p.tied_with else ""
+        c, r, p = sp.cost_model[n], sp.efficiency_vs_path[n], rank.get(n)
+        # (issue 66: a figure withheld off its budget is not ranked)
+        tied = f" (tie: {', '.join(p.tied_with)})" if p and p.tied_with else ""
         wall = float(np.median(run.wall_seconds)) * 1e3
         tries = (f" <span class=desc>({len(run.tries)} tries)</span>"
                  if len(run.tries) > 1 else "")
         rows.append(
-            f"<tr><td>{swatch(n, colours)}</td><td>{p.rank}{html.escape(tied)}</td>"
+            f"<tr><td>{swatch(n, colours)}</td><td>{p.rank if p else '—'}{html.escape(tied)}</td>"
             f"<td>{html.escape(ratio_text(r))}</td>"
             f"<td>{relmse_text(run, fmt)}</td>"
             f"<td>{run.spp}</td><td class={'ok' if run.on_budget else 'warn'}>{wall:.0f}{tries}</td>"

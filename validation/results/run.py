@@ -55,7 +55,10 @@ VERSION = 1
 #: then runs from 0: an upper bound).
 #: 19: ``machine`` may carry ``speed``: the run's time for a fixed workload
 #: (run/probe.py), where it timed renders.
-MINOR_VERSION = 19
+#: 20: an efficiency ratio's ``kind`` may be ``off_budget``: withheld (ratio
+#: and interval null) where a median wall time missed its budget beyond
+#: stages/budgets.py EQUAL_TIME, its ``reason`` saying by how much.
+MINOR_VERSION = 20
 
 
 @dataclass(kw_only=True)

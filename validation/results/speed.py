@@ -78,14 +78,18 @@ KINDS = {
     "heavy_tailed": "rare large errors (fireflies) carry its error, with a tail K renders "
                     "cannot bound: an upper bound (its mean error may be larger than "
                     "they show)",
+    "off_budget": "withheld: its renders' median wall time (or path's) missed the budget "
+                  "by more than the stage's tolerance (stages/budgets.py EQUAL_TIME) after "
+                  "every correction: not an equal-time figure",
 }
 
 
 @dataclass(kw_only=True)
 class Ratio:
-    ratio: float
+    ratio: float                        # NaN: withheld (kind off_budget)
     ci: Interval                        # high = inf: a lower bound; low = 0: an upper one
     kind: str = "unbiased"              # a key of KINDS (minor version 9)
+    reason: str | None = optional()    # why withheld (off_budget, minor version 20)
 
 
 @dataclass(kw_only=True)

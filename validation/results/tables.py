@@ -166,7 +166,10 @@ def ratio_text(r) -> str:
     (the error is the reference's noise) or "≥ 0.02 (its relMSE too
     uncertain …)" (rare large errors); an upper bound as "≤ 3e-05
     (heavy-tailed)" (fireflies its renders cannot bound); an estimator
-    biased by design's with "(biased: this budget only)"."""
+    biased by design's with "(biased: this budget only)"; one withheld off
+    its budget as "withheld: <reason>"."""
+    if r is not None and r.kind == "off_budget":
+        return f"withheld: {r.reason or 'off budget'}"
     if r is None or not np.isfinite(r.ratio):
         return "—"
     if r.kind == "heavy_tailed":

@@ -98,6 +98,20 @@ class Reference:
                        self.image_means.mean(axis=0), self.image_means.var(axis=0, ddof=1))
 
 
+#: A reference whose every pixel channel is at most this carries no signal
+#: (stages/common.py: require_signal): float32's smallest normal number.
+#: Radiance has no unit mcillum knows (a scene's emitters may be scaled by
+#: 1e-6 and be right), so no larger floor is safe; below this one a film
+#: pixel holds underflow, not light.
+SIGNAL_FLOOR = float(np.finfo(np.float32).tiny)
+
+
+def has_signal(ref: "Reference") -> bool:
+    """Does some pixel channel of the reference's mean exceed SIGNAL_FLOOR?"""
+    mean = np.asarray(ref.mean, np.float64)[..., :3]
+    return bool(np.any(np.nan_to_num(mean, nan=0.0) > SIGNAL_FLOOR))
+
+
 # ------------------------------- Cache key -----------------------------------
 
 def _renders_by():

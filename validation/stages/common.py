@@ -21,6 +21,7 @@ import os
 
 import numpy as np
 
+from mcillum.errors import NoSignal
 from mcillum.integrators import registry, scene_checks
 
 from ..plan import scenes, seeds
@@ -224,6 +225,44 @@ def build_reference(ctx) -> None:
     own = ctx.stacks[max(ctx.stacks)].get(REFERENCE) if ctx.stacks else None
     expected = references.expected_spp(own.images, own.spp, target) if own is not None else 0.0
     ctx.reference = references.ensure(ctx, target, expected)
+
+
+def require_signal(ctx) -> None:
+    """Refuse a context whose reference carries no signal (every pixel
+    channel at most references.SIGNAL_FLOOR): against a black reference
+    every check passes whatever an estimator renders, so a scene without
+    light, or whose camera looks away from it, would pass vacuously.
+    Returns None where the reference carries signal.
+
+    Raises :class:`~mcillum.errors.NoSignal` (the CLI's exit 2) for a
+    user's scene file, naming it and what to check; RuntimeError for a
+    bundled scene (the profile's scenes are all lit: a bug, not the
+    user's)."""
+    ref = ctx.reference
+    if references.has_signal(ref):
+        return
+    h, w = ref.mean.shape[:2]
+    black = (f"the reference (Mitsuba's path, {ref.spp} spp at {w}×{h}) is black in "
+             f"every pixel (none above {references.SIGNAL_FLOOR:.3g}, float32's smallest "
+             "normal number)")
+    if ctx.info.bundled:
+        raise RuntimeError(f"internal error: bundled scene '{ctx.id}' with "
+                           f"{ctx.defines or 'its defaults'}: {black}; the profile's scenes "
+                           "must be lit: fix the scene or the profile")
+    scene = ctx.scene
+    emitters = len(scene.emitters()) if scene is not None else None
+    if emitters == 0:
+        why = ("the scene has no emitter (no area light, point light or environment): add "
+               "an emitter, or check the include or $-parameter that holds it")
+    else:
+        some = f"its {emitters} emitter{'s' if emitters != 1 else ''}" if emitters \
+            else "its emitters"
+        why = (f"{some} light{'s' if emitters == 1 else ''} nothing the sensor sees: "
+               "check that the sensor looks at the lit part of the scene (its to_world / "
+               f"lookat), that the emitters face it, and that max_depth {ctx.max_depth} "
+               "reaches them")
+    raise NoSignal(f"{ctx.info.path}: nothing to validate: {black}, and every estimator "
+                   f"would pass against it whatever it renders; {why}")
 
 
 def reference_summary(ref) -> ReferenceSummary:

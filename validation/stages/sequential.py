@@ -289,6 +289,8 @@ def settle(first: list, reference, read, more, epsilon: float, growth: float,
                            reference_spp)
     if d.outcome == "fail" and confirmation:
         d.reason += f"; {confirmation}"
+    # (after the looks: a vacuous pass is failed, never confirmed on more renders)
+    d = evidence.nothing_tested(d, c)
     return evidence.Settled(decision=d, looks=look + 1, samples=total, budget=limit,
                             replicated=replicated, replication=confirmation), c
 

@@ -40,7 +40,11 @@ in a sub-context of the scene's (``ctx.display``). Its stages, in order:
                        biased by design is marked so, and one whose
                        fireflies carry an error K renders cannot bound
                        (stats/tails.py: error_tail) is heavy-tailed, its
-                       efficiency an upper bound; the cores other
+                       efficiency an upper bound; one whose median
+                       (or path's) is still beyond ×EQUAL_TIME of its
+                       budget after the corrections has its efficiency
+                       withheld and is not ranked (:func:`off_budget`);
+                       the cores other
                        processes used while the renders were timed
                        (run/load.py), and a note above LOADED
     save_display       images/<scene>/display/: the reference; per estimator
@@ -71,8 +75,8 @@ from ..run import load, probe, references, timing
 from ..run.stacks import Stack
 from ..stats import costs, metrics, tails
 from . import budgets, common
-from .budgets import (LOADED, MAX_SCALE, MIN_BUDGET, MIN_LEARNER_SPP, MIN_SPP, ON_BUDGET,
-                      REFERENCE, budget_spp, load_se)
+from .budgets import (EQUAL_TIME, LOADED, MAX_SCALE, MIN_BUDGET, MIN_LEARNER_SPP, MIN_SPP,
+                      ON_BUDGET, REFERENCE, budget_spp, equal_time, load_se)
 from .budgets import job as _job
 
 PILOT_SPP = (1, 16)
@@ -163,8 +167,12 @@ def measure_speed(ctx) -> None:
     # (the times of a loaded machine say less than their scatter shows)
     eff = {n: costs.efficiency(run.relmse_per_render, run.wall_seconds, share, load_se(run))
            for n, run in top.items()}
-    ratios = {}
+    ratios = off_budget(top, budgets[-1].seconds)
+    for n in ratios:
+        ctx.notes.append(f"{n}: efficiency ÷ path withheld: {ratios[n].reason}")
     for n, run in top.items():
+        if n in ratios:
+            continue
         ratio, ci = costs.ratio(eff[n], eff[REFERENCE],
                                 min(len(run.relmse_per_render), len(base.relmse_per_render)))
         ratios[n] = Ratio(ratio=ratio, ci=ci, kind=_kind(n, run, share, tail[n]))
@@ -179,7 +187,9 @@ def measure_speed(ctx) -> None:
             ratios[n].ci = Interval(0.0, ci.high)
             eff[n] = dataclasses.replace(eff[n], ci=Interval(0.0, eff[n].ci.high))
     ctx.notes.extend(learner_notes(budgets))
-    ranking = costs.ranking({n: (e.value, e.ci) for n, e in eff.items()})
+    # (a withheld figure is not ranked: it was not read at equal time)
+    ranking = costs.ranking({n: (e.value, e.ci) for n, e in eff.items()
+                             if n not in ratios or ratios[n].kind != "off_budget"})
     # the pilot's renders, every repeat: a line through the budgets' renders
     # too gave fixed costs of -8 to -14 ms [intervals below 0], since a sample
     # costs less at large spp than at 1-16 (docs/measurements.md, 2026-12-03)
@@ -193,6 +203,33 @@ def measure_speed(ctx) -> None:
         mean_flip={n: (f[1] if f is not None else float("nan")) for n, f in flips.items()},
         notes=list(ctx.notes), timed_on=list(ctx.timed_on), others_cores=others,
         cores=cores, loaded=loaded)
+
+
+def off_budget(runs: dict[str, BudgetRun], budget: float) -> dict[str, Ratio]:
+    """The efficiency ratios to withhold at ``budget`` (seconds): {name:
+    Ratio of NaN, kind "off_budget", its reason} for each estimator of
+    ``runs`` whose median wall time missed the budget beyond
+    budgets.EQUAL_TIME (after every correction, stages/budgets.py), and for
+    every one where path's own did (each ratio divides by it)."""
+    def miss(run: BudgetRun) -> str:
+        median = float(np.median(run.wall_seconds))
+        return (f"median {median * 1e3:.3g} ms at {run.spp} spp against a "
+                f"{budget * 1e3:.3g} ms budget (×{median / budget:.2g}, beyond "
+                f"×{EQUAL_TIME:g} either way)")
+
+    base = runs.get(REFERENCE)
+    path_off = base is not None and not equal_time(base.wall_seconds, budget)
+    out = {}
+    for n, run in runs.items():
+        if path_off:
+            why = f"path, which every ratio divides by, took {miss(base)}"
+        elif not equal_time(run.wall_seconds, budget):
+            why = miss(run)
+        else:
+            continue
+        out[n] = Ratio(ratio=math.nan, ci=Interval(math.nan, math.nan), kind="off_budget",
+                       reason=f"off budget: {why}: not an equal-time figure")
+    return out
 
 
 def learner_notes(found: list[Budget]) -> list[str]:
@@ -209,6 +246,9 @@ def learner_notes(found: list[Budget]) -> list[str]:
         for b in found:
             run, base = b.estimators.get(name), b.estimators.get(REFERENCE)
             if run is None or base is None:
+                continue
+            if name in off_budget({name: run, REFERENCE: base}, b.seconds):
+                parts.append(f"withheld (off budget) at {b.seconds * 1e3:.0f} ms")
                 continue
             share = costs.Share(b.reference_relmse, b.reference_relmse_se)
             ratio, ci = costs.ratio_interval(run.relmse_per_render, run.wall_seconds,
