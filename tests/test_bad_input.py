@@ -71,7 +71,7 @@ RENDER = [
      'cannot load scene {tmp}/bad.xml: Parsing of XML file "{tmp}/bad.xml" failed: Start-end '
      "tags mismatch (line 4, col 3): fix the XML at that line"),
     ("binary-scene", ["{tmp}/binary.xml", "-i", "path"], 1, "not a UTF-8 text (XML) file"),
-    ("scene-is-directory", ["{tmp}", "-i", "path"], 1, "it is a directory; give an XML file"),
+    ("scene-is-directory", ["{tmp}", "-i", "path"], 2, "it is a directory; give an XML file"),
     ("unknown-integrator", [CORNELL, "-i", "nope"], 2,
      f"unknown integrator 'nope': {MCILLUM_INTEGRATORS}; any Mitsuba integrator also works"),
     ("not-an-integrator", [CORNELL, "-i", "phong"], 2,
