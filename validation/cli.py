@@ -151,6 +151,9 @@ def _parser() -> argparse.ArgumentParser:
                         "(JUnit then reports inconclusive checks as failures, not skipped)")
     v.add_argument("--no-speed", action="store_true",
                    help="leave out the speed-and-images stage (no verdict depends on it)")
+    v.add_argument("--quiet", "-q", action="store_true",
+                   help="no progress on stderr (default: one updating line on a terminal; "
+                        "in a log, a line as each stage starts and about every 30 s)")
     v.add_argument("--executor", choices=executors.KINDS, default="local",
                    help="where the renders run: this process (local, default) or a Ray "
                         "cluster (ray; pip install 'mcillum[ray]'); the images are the same")
@@ -318,7 +321,7 @@ def _validate(args) -> int:
                             ray_workers=args.ray_workers, plugins=args.plugin,
                             budget=args.budget,
                             settings=settings, defines=_assignments(args.define),
-                            res=args.res)
+                            res=args.res, progress=False if args.quiet else None)
     if args.junit:
         results.write_junit(args.junit, out, strict=args.strict)
     print(results.summary(out))
