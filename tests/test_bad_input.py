@@ -322,7 +322,8 @@ def test_validate_interrupted_exits_130_without_false_results(tmp_path, stage):
     code, err = stall_and_signal(
         tmp_path, "index.html" if stage == "writing-the-report" else ".npz",
         ["validate", "--out", str(out), "--cache", str(tmp_path / "cache"),
-         "--scenes", "furnace_sphere", "--estimators", "cosine_hemisphere"], signal.SIGINT)
+         "--scenes", "furnace_sphere", "--estimators", "cosine_hemisphere", "--quiet"],
+        signal.SIGINT)   # (--quiet: no progress lines, only the message is said)
     assert code == 130 and "Traceback" not in err, err
     assert err.startswith("mcillum validate: interrupted: ") and err.count("\n") == 1, err
     assert not partials(tmp_path), "SIGINT must remove the temporary files"
