@@ -55,10 +55,11 @@ class Progress:
 
     ``enabled``: False is silent; None or True shows progress, as one
     rewritten line when ``tty`` (default: whether the stream is a terminal),
-    else as plain lines (see the module's doc). ``clock`` and ``interval``
-    are for tests; ``log`` is an object whose ``flush()`` writes what it
-    held back (run/mitsuba_log.py), called before every stage line so that
-    Mitsuba's warnings stay next to the stage that caused them.
+    else as plain lines (see the module's doc). ``clock`` and ``interval_s``
+    (default :func:`interval`) are for tests; ``log`` is an object whose
+    ``flush()`` writes what it held back (run/mitsuba_log.py), called before
+    every stage line so that Mitsuba's warnings stay next to the stage that
+    caused them. Raises ValueError for a bad ``$MCILLUM_PROGRESS_SECONDS``.
     """
 
     def __init__(self, total: int, enabled: bool | None = None, *, stream=None,
