@@ -4,10 +4,11 @@
 Exit codes, the same rule for every subcommand: 0 success; 2 usage error, what
 the command line alone shows to be wrong (a bad option value, an unknown
 integrator or integrator parameter, an unknown or ill-typed map parameter, a
-scene path that names no file, an output path that cannot be written); 1 what is found while loading or
-rendering (a broken scene, an unknown $-parameter, a refused map, a failed
-check); 130 interrupted (Ctrl-C), 143 terminated (SIGTERM). Either way one
-message, no traceback, and no partial file at an output path.
+scene path that names no file, an output path that cannot be written); 1 what
+is found while loading or rendering (a broken scene, an unknown $-parameter, a
+refused map, a failed check); 130 interrupted (Ctrl-C), 143 terminated
+(SIGTERM). Either way one message, no traceback, and no partial file at an
+output path.
 """
 
 from __future__ import annotations
