@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import pytest
 
-from .testing import Inconclusive
+from .testing import Inconclusive, _hide_user_errors
 
 STRICT = "--mcillum-strict"
 
@@ -57,6 +57,7 @@ def mcillum_compare(request, tmp_path):
     calls = []
 
     def run(scene, integrator, **kwargs):
+        __tracebackhide__ = _hide_user_errors     # (a usage error: the user's line says it)
         calls.append(scene)
         if kwargs.get("out_dir") is None:
             suffix = "" if len(calls) == 1 else f"-{len(calls)}"

@@ -34,7 +34,7 @@ import tempfile
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from .errors import UsageError
+from .errors import UsageError, UserError
 from .integrators import registry
 
 if TYPE_CHECKING:
@@ -45,6 +45,13 @@ __all__ = ["Comparison", "Inconclusive", "assert_passes", "assert_unbiased", "co
 
 #: The reference of every comparison (Mitsuba's path tracer).
 REFERENCE = registry.REFERENCE
+
+
+def _hide_user_errors(excinfo) -> bool:
+    """For ``__tracebackhide__``: True for a :class:`~mcillum.errors.UserError`
+    (pytest then leaves the frame out: the user's line and the message say
+    it all); other exceptions keep mcillum's frames, where a bug would be."""
+    return excinfo.errisinstance(UserError)
 
 
 class Inconclusive(AssertionError):
@@ -145,6 +152,7 @@ def compare(scene, integrator: str, *, reference: str = REFERENCE,
     black in every pixel, which no check could fail
     (:class:`~mcillum.errors.NoSignal`: no emitter, or none the sensor sees).
     """
+    __tracebackhide__ = _hide_user_errors
     from .validation import pipeline
     from .validation.plan import profiles, scenes
     from .validation.results import layout
@@ -173,6 +181,7 @@ def compare(scene, integrator: str, *, reference: str = REFERENCE,
 
 
 def _check_bundled(name: str, plan, given: dict) -> None:
+    __tracebackhide__ = _hide_user_errors
     """A bundled scene runs as the profile says: it must be one of the
     profile's, and the settings of a scene file do not apply to it."""
     names = list(dict.fromkeys(r.scene for r in plan.runs))
@@ -195,6 +204,7 @@ def assert_passes(comparison: Comparison, strict: bool = False) -> None:
     check of the integrator ran (it does not render the scene: the notes say
     why). With no failure but some inconclusive checks, raises
     :class:`Inconclusive` (with ``strict``: AssertionError)."""
+    __tracebackhide__ = True    # (pytest shows the user's line and the message, not ours)
     _judge(comparison, comparison.checks, "checks", strict)
 
 
@@ -203,6 +213,7 @@ def assert_unbiased(comparison: Comparison, strict: bool = False) -> None:
     reference) passed; returns None. Raises as :func:`assert_passes` does,
     for these checks only; AssertionError also for an integrator biased by
     design, which has no such check."""
+    __tracebackhide__ = True
     unbiased = [c for c in comparison.checks if c.id.rsplit("/", 1)[-1] == "unbiased"]
     if comparison.checks and not unbiased:
         raise AssertionError(
@@ -213,6 +224,7 @@ def assert_unbiased(comparison: Comparison, strict: bool = False) -> None:
 
 
 def _judge(c: Comparison, checks: list, what: str, strict: bool) -> None:
+    __tracebackhide__ = True
     if not checks:
         # Silence is no pass: an integrator that refuses the scene, or does
         # not define its max_depth, is left out of the run.

@@ -71,7 +71,7 @@ RENDER = [
      'cannot load scene {tmp}/bad.xml: Parsing of XML file "{tmp}/bad.xml" failed: Start-end '
      "tags mismatch (line 4, col 3): fix the XML at that line"),
     ("binary-scene", ["{tmp}/binary.xml", "-i", "path"], 1, "not a UTF-8 text (XML) file"),
-    ("scene-is-directory", ["{tmp}", "-i", "path"], 1, "it is a directory; give an XML file"),
+    ("scene-is-directory", ["{tmp}", "-i", "path"], 2, "it is a directory; give an XML file"),
     ("unknown-integrator", [CORNELL, "-i", "nope"], 2,
      f"unknown integrator 'nope': {MCILLUM_INTEGRATORS}; any Mitsuba integrator also works"),
     ("not-an-integrator", [CORNELL, "-i", "phong"], 2,
@@ -322,7 +322,8 @@ def test_validate_interrupted_exits_130_without_false_results(tmp_path, stage):
     code, err = stall_and_signal(
         tmp_path, "index.html" if stage == "writing-the-report" else ".npz",
         ["validate", "--out", str(out), "--cache", str(tmp_path / "cache"),
-         "--scenes", "furnace_sphere", "--estimators", "cosine_hemisphere"], signal.SIGINT)
+         "--scenes", "furnace_sphere", "--estimators", "cosine_hemisphere", "--quiet"],
+        signal.SIGINT)   # (--quiet: no progress lines, only the message is said)
     assert code == 130 and "Traceback" not in err, err
     assert err.startswith("mcillum validate: interrupted: ") and err.count("\n") == 1, err
     assert not partials(tmp_path), "SIGINT must remove the temporary files"

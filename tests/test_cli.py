@@ -98,10 +98,26 @@ def test_usage_errors_exit_2(args):
     assert info.value.code == 2
 
 
-def test_missing_scene_exits_1(tmp_path, capsys):
-    code = cli.main(["render", str(tmp_path / "nope.xml"), "-i", "cosine_hemisphere",
-                     "-o", str(tmp_path / "x.exr")])
-    assert code == 1 and "scene file not found" in capsys.readouterr().err
+@pytest.mark.parametrize("command", [
+    ["render", "{scene}", "-i", "cosine_hemisphere", "-o", "{tmp}/x.exr"],
+    ["bench", "{scene}"],
+    ["validate", "{scene}", "--out", "{tmp}/out"],
+])
+@pytest.mark.parametrize("scene, said", [
+    ("{tmp}/missing.xml", "scene file not found: {tmp}/missing.xml"),
+    ("{tmp}", "cannot load scene {tmp}: it is a directory; give an XML file"),
+])
+def test_a_scene_path_that_names_no_file_is_a_usage_error_in_every_command(
+        command, scene, said, tmp_path, capsys):
+    """The same mistake, the same exit code (2) and message, whichever
+    subcommand is given it; nothing is written."""
+    args = [a.replace("{scene}", scene).replace("{tmp}", str(tmp_path)) for a in command]
+    with pytest.raises(SystemExit) as info:
+        cli.main(args)
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and said.replace("{tmp}", str(tmp_path)) in err, err
+    assert f"mcillum {command[0]}: error:" in err and "Traceback" not in err
+    assert not any(tmp_path.iterdir())
 
 
 def test_console_script_is_installed():

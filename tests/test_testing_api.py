@@ -203,3 +203,45 @@ def test_inconclusive_is_xfail_by_default_and_a_failure_when_strict(fresh):
     result = fresh.runpytest_subprocess("--mcillum-strict")
     result.assert_outcomes(passed=1, failed=2)
     result.stdout.fnmatch_lines(["*inconclusive, counted as a failure (--mcillum-strict)*"])
+
+
+def test_a_failing_helper_shows_the_users_line_not_mcillums_frames(fresh):
+    """``__tracebackhide__``: a failing assert_passes, and a usage error of the
+    fixture, point at the test's own line and say the message; no frame of
+    testing.py or pytest_plugin.py is printed (the made-up comparison needs
+    no render)."""
+    fresh.makepyfile(test_mine=textwrap.dedent("""
+        from types import SimpleNamespace
+        from mcillum.testing import Comparison, assert_passes, assert_unbiased
+        from mcillum.validation.results import Check
+
+        def made_up():
+            check = Check(id="room/mine/unbiased", passed=False, outcome="fail",
+                          message="image mean darker than the reference")
+            results = SimpleNamespace(checks=[check],
+                                      scenes=[SimpleNamespace(name="room", notes=[])])
+            return Comparison(scene="room.xml", integrator="mine", reference="path",
+                              results=results, out_dir="/runs", report="/runs/r.html")
+
+        def test_fails():
+            assert_passes(made_up())  # the user's line
+
+        def test_fails_unbiased():
+            assert_unbiased(made_up())  # the user's other line
+
+        def test_usage(mcillum_compare):
+            mcillum_compare("no_such_scene", "mine")  # the user's mistake
+        """))
+    result = fresh.runpytest_subprocess()
+    result.assert_outcomes(failed=3)
+    result.stdout.fnmatch_lines([
+        "*assert_passes(made_up())  # the user's line",
+        "E * 'mine' failed 1 of 1 checks against 'path' on scene 'room':",
+        "E *room/mine/unbiased: image mean darker than the reference",
+        "*assert_unbiased(made_up())  # the user's other line",
+        "E * 'mine' failed 1 of 1 unbiased checks*",
+        "*mcillum_compare(\"no_such_scene\", \"mine\")  # the user's mistake",
+        "E *UsageError: scene 'no_such_scene' is no scene of profile 'quick'*"])
+    shown = result.stdout.str()
+    for internal in ("testing.py", "pytest_plugin.py", "_judge(", "def run("):
+        assert internal not in shown, f"{internal} in the traceback:\n{shown}"

@@ -3,11 +3,12 @@
 
 Exit codes, the same rule for every subcommand: 0 success; 2 usage error, what
 the command line alone shows to be wrong (a bad option value, an unknown
-integrator or integrator parameter, an unknown or ill-typed map parameter, an
-output path that cannot be written); 1 what is found while loading or
-rendering (a broken scene, an unknown $-parameter, a refused map, a failed
-check); 130 interrupted (Ctrl-C), 143 terminated (SIGTERM). Either way one
-message, no traceback, and no partial file at an output path.
+integrator or integrator parameter, an unknown or ill-typed map parameter, a
+scene path that names no file, an output path that cannot be written); 1 what
+is found while loading or rendering (a broken scene, an unknown $-parameter, a
+refused map, a failed check); 130 interrupted (Ctrl-C), 143 terminated
+(SIGTERM). Either way one message, no traceback, and no partial file at an
+output path.
 """
 
 from __future__ import annotations
@@ -151,6 +152,9 @@ def _parser() -> argparse.ArgumentParser:
                         "(JUnit then reports inconclusive checks as failures, not skipped)")
     v.add_argument("--no-speed", action="store_true",
                    help="leave out the speed-and-images stage (no verdict depends on it)")
+    v.add_argument("--quiet", "-q", action="store_true",
+                   help="no progress on stderr (default: one updating line on a terminal; "
+                        "in a log, a line as each stage starts and about every 30 s)")
     v.add_argument("--executor", choices=executors.KINDS, default="local",
                    help="where the renders run: this process (local, default) or a Ray "
                         "cluster (ray; pip install 'mcillum[ray]'); the images are the same")
@@ -189,7 +193,17 @@ def _exr_output(path: str) -> None:
     files.check_output(path)
 
 
+def _scene_file(path: str) -> None:
+    """Raise a usage error (exit 2) for a scene path that names no file: the
+    command line alone shows it, in every subcommand alike."""
+    if os.path.isdir(path):
+        raise _Usage(f"cannot load scene {path}: it is a directory; give an XML file")
+    if not os.path.isfile(path):
+        raise _Usage(f"scene file not found: {path}")
+
+
 def _render(args) -> int:
+    _scene_file(args.scene)
     _exr_output(args.output)
     if args.spp < 1:
         raise _Usage(f"--spp must be >= 1, got {args.spp}")
@@ -219,6 +233,7 @@ def _render(args) -> int:
 
 
 def _bench(args) -> int:
+    _scene_file(args.scene)
     if args.spp < 1 or args.runs < 2:
         raise _Usage("--spp must be >= 1 and --runs >= 2 (an interval needs repeats)")
     params, defines = _assignments(args.param), _assignments(args.define)
@@ -265,8 +280,8 @@ def _validate(args) -> int:
     names = [*args.scene, *(args.scenes or [])]
     profile.check_scenes([n for n in names if not scenes.is_path(n)])
     for name in names:
-        if scenes.is_path(name) and not os.path.isfile(name):
-            raise _Usage(f"scene file not found: {name}")
+        if scenes.is_path(name):
+            _scene_file(name)
     given = [n for n in (args.max_depth, args.rr_depth, args.hide_emitters, args.res)
              if n is not None]
     if given and not (any(scenes.is_path(n) for n in names)
@@ -307,7 +322,7 @@ def _validate(args) -> int:
                             ray_workers=args.ray_workers, plugins=args.plugin,
                             budget=args.budget,
                             settings=settings, defines=_assignments(args.define),
-                            res=args.res)
+                            res=args.res, progress=False if args.quiet else None)
     if args.junit:
         results.write_junit(args.junit, out, strict=args.strict)
     print(results.summary(out))

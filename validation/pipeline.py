@@ -55,7 +55,7 @@ from .checks import cases as case_checks
 from .checks import scene as scene_checks
 from .plan import profiles, scenes, seeds, user_scenes
 from .results import layout
-from .run import executors, renders
+from .run import executors, mitsuba_log, renders
 from .run.progress import Progress
 from .stages import cases, common, learning, quadrature, scene, speed, sun_split
 from .stages.context import Context, Run
@@ -86,6 +86,7 @@ SWEEP_POINT = (common.load, common.choose_estimators, cases.render_seeds,
 
 def run_stages(stage_list, ctx: Context) -> Context:
     for stage in stage_list:
+        ctx.run.stage(ctx, stage.__name__)
         stage(ctx)
     return ctx
 
@@ -167,6 +168,8 @@ def validate(profile_name="quick", scene_names=None, estimators=None,
     and ``res`` (the statistics film's longest side); no failure case runs
     for them. ``plugins`` (files or modules, with the profile's) are
     imported first, here and on every worker (mcillum/plugins.py).
+    ``progress``: False shows none; None (default) one updating line on
+    a terminal, plain lines in a log (run/progress.py).
     ``budget`` overrides the profile's sequential budgets (× a check's first
     look's samples per pixel, stages/sequential.py).
     ``seed_set`` picks an independent repeat (plan/seeds.py); ``speed_stage``
@@ -216,8 +219,9 @@ def validate(profile_name="quick", scene_names=None, estimators=None,
     start = time.perf_counter()
     try:
         scene_results, case_results, checks = [], [], []
-        with start_executor(executor, ray_address, ray_workers, variant, loaded) as ex:
-            bar = Progress(total, progress)
+        with start_executor(executor, ray_address, ray_workers, variant, loaded) as ex, \
+                mitsuba_log.plain() as log:
+            bar = Progress(total, progress, log=log)
             run = Run(profile, variant, cache_dir, out_dir, bar, ex, budget)
             try:
                 for plan in plans:

@@ -53,6 +53,11 @@ class Run:
         if self.progress is not None:
             self.progress(what, steps)
 
+    def stage(self, ctx: "Context", name: str) -> None:
+        """Stage ``name`` of ``ctx`` starts (a line in a log: progress.py)."""
+        if self.progress is not None:
+            self.progress.stage(ctx.where, name, ctx.label)
+
 
 @dataclass
 class Context:
@@ -129,6 +134,12 @@ class Context:
     def is_case(self) -> bool:
         """A failure case (or a point of one's sweep), not a scene comparison."""
         return hasattr(self.plan, "group")
+
+    @property
+    def where(self) -> str:
+        """What progress lines call this context: a case's label (it names
+        its group), or "scene" and the scene's label."""
+        return self.label if self.is_case else f"scene {self.label}"
 
     @property
     def images_dir(self) -> str:
