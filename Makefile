@@ -4,7 +4,7 @@ PYTHON ?= python3
 VENV   ?= .venv
 BIN     = $(VENV)/bin
 
-.PHONY: validate render test test-slow browser clean
+.PHONY: validate render test test-slow browser screenshot clean
 
 # Main job: compare every estimator with Mitsuba's path tracer (quick profile)
 # → out/validate/{results.json,results.csv,summary.md,images/}; exit 1 if a check fails.
@@ -44,6 +44,11 @@ $(VENV)/.installed: pyproject.toml
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[test]'
 	touch $@
+
+# The README's picture of the report, from a fresh quick run (docs/screenshot.py;
+# tests/test_docs.py fails when the report's code has changed since it was taken).
+screenshot: validate browser
+	$(BIN)/python docs/screenshot.py out/validate --out docs/report-quick.png
 
 clean:
 	rm -rf $(VENV) out .pytest_cache

@@ -275,3 +275,42 @@ def test_the_readme_checks_find_times_and_counts(tmp_path):
     assert "at most" in too_long(readme)
     readme.write_text("line\n" * README_MAX_LINES, encoding="utf-8")
     assert too_long(readme) is None
+
+
+# ------------------------------ The README's picture ------------------------------
+
+def _screenshot_module():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("screenshot", ROOT / "docs" / "screenshot.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_readmes_picture_of_the_report_shows_the_report_as_it_is_drawn():
+    """docs/report-quick.png was taken (docs/screenshot.py) from the report's
+    code as it stands: a changed report fails here until `make screenshot`."""
+    from PIL import Image
+
+    shot = _screenshot_module()
+    picture = ROOT / "docs" / "report-quick.png"
+    assert "(docs/report-quick.png)" in (ROOT / "README.md").read_text(encoding="utf-8")
+    taken = Image.open(picture).text.get(shot.KEY)
+    assert taken == shot.report_code_hash(), (
+        "docs/report-quick.png was not taken from the report's code as it stands "
+        "(validation/report/ changed): run `make screenshot` and commit the picture")
+
+
+def test_the_pictures_hash_follows_the_report_code(tmp_path, monkeypatch):
+    """The hash changes when a report module changes (a stale picture is seen)."""
+    shot = _screenshot_module()
+    copy = tmp_path / "report"
+    copy.mkdir()
+    for f in Path(shot.REPORT_CODE).glob("*.py"):
+        (copy / f.name).write_bytes(f.read_bytes())
+    monkeypatch.setattr(shot, "REPORT_CODE", str(copy))
+    before = shot.report_code_hash()
+    with open(copy / "page.py", "a", encoding="utf-8") as f:
+        f.write("\n# a change\n")
+    assert shot.report_code_hash() != before

@@ -31,6 +31,30 @@ def test_half_floats_round_trip_exactly_to_binary16():
         viewer.unpack_half(viewer.pack_half(x), 17, 22)
 
 
+def test_seven_bits_a_character_round_trip_and_avoid_what_a_script_cannot_hold():
+    """pack_text/unpack_text give the bytes back, for every length and for
+    runs of the values that must be escaped; no NUL, CR or "<" is written,
+    and a byte of UTF-8 carries seven bits."""
+    rng = np.random.default_rng(4)
+    cases = [rng.integers(0, 256, n, np.uint8).tobytes() for n in (0, 1, 6, 7, 8, 9, 1000)]
+    cases.append(bytes([0] * 9 + [13] * 9 + [60] * 9 + [255]))
+    for data in cases:
+        text = viewer.pack_text(data)
+        assert viewer.unpack_text(text, len(data)) == data
+        assert not set(text) & {"\0", "\r", "<"}
+    noise = rng.integers(0, 256, 7000, np.uint8).tobytes()
+    assert len(viewer.pack_text(noise).encode("utf-8")) <= 8000 + 1
+    with pytest.raises(ValueError, match="bytes"):
+        viewer.unpack_text(viewer.pack_text(b"abc"), 9)
+
+
+def blobs(html_text):
+    """The viewers' data elements of a page: the bytes of each, in order."""
+    return [viewer.unpack_text(t, int(n)) for n, t in re.findall(
+        r'<script type="application/octet-stream" class=vbin data-n=(\d+)>(.*?)</script>',
+        html_text, re.S)]
+
+
 def test_a_viewer_carries_every_image_and_refuses_mixed_sizes():
     a = np.ones((4, 5, 3), np.float32)
     html = viewer.viewer("s-viewer", [viewer.Shown("reference", "r", a),
@@ -38,8 +62,10 @@ def test_a_viewer_carries_every_image_and_refuses_mixed_sizes():
                          0.0, (1e-3, 1.0))
     spec = json.loads(re.search(r'class=vdata>(.*?)</script>', html, re.S).group(1))
     assert [i["label"] for i in spec["images"]] == ["reference", "path"]
-    assert spec["images"][0]["flip"] is None and spec["images"][1]["flip"]
-    np.testing.assert_array_equal(viewer.unpack_half(spec["images"][1]["data"], 4, 5), 2 * a)
+    assert [i["flip"] for i in spec["images"]] == [False, True]
+    data = blobs(html)
+    assert len(data) == 3                       # reference, path, path's FLIP
+    np.testing.assert_array_equal(viewer.unpack_half(data[1], 4, 5), 2 * a)
     with pytest.raises(ValueError, match="one size"):
         viewer.viewer("s", [viewer.Shown("a", "", a), viewer.Shown("b", "", a[:3])], 0, (1, 2))
 
@@ -48,17 +74,19 @@ def test_the_report_ships_each_display_render_as_its_data(tmp_path):
     """The viewer's data of every render equal the display EXRs to binary16."""
     run = fake_run_dir(tmp_path)
     text = open(report.build(str(run)), encoding="utf-8").read()
-    blocks = re.findall(r'<div class=viewer id="([^"]+)-viewer".*?class=vdata>(.*?)</script>',
-                        text, re.S)
-    assert [b[0] for b in blocks] == ["alpha", "beta"]
-    for scene, data in blocks:
-        spec = json.loads(data)
+    viewers = re.split(r'<div class=viewer id="', text)[1:]
+    assert [v.split("-viewer", 1)[0] for v in viewers] == ["alpha", "beta"]
+    for part in viewers:
+        scene = part.split("-viewer", 1)[0]
+        spec = json.loads(re.search(r'class=vdata>(.*?)</script>', part, re.S).group(1))
+        data = iter(blobs(part))                # (up to the next viewer)
         d = run / "images" / scene / "display"
         for im in spec["images"]:
-            name = "reference" if im["label"] == "reference" else im["label"]
-            exr = files.read_exr(d / f"{name}.exr")[0][..., :3]
-            got = viewer.unpack_half(im["data"], spec["h"], spec["w"])
+            exr = files.read_exr(d / f"{im['label']}.exr")[0][..., :3]
+            got = viewer.unpack_half(next(data), spec["h"], spec["w"])
             np.testing.assert_array_equal(got, exr.astype(np.float16).astype(np.float32))
+            if im["flip"]:
+                next(data)
 
 
 # ------------------------------ In a real browser ------------------------------
@@ -191,3 +219,39 @@ def test_a_flat_render_shows_no_contour(tmp_path):
     columns = pixels.mean(axis=(0, 2))
     assert columns.max() - columns.min() <= 0.5
     assert abs(pixels.mean() - level) <= 0.25
+
+
+def test_allot_shares_the_budget_and_gives_what_a_small_scene_leaves():
+    from mcillum.validation.report.page import allot
+
+    assert allot([10, 20, 30], 100) == [None, None, None]      # all fit: no limit
+    assert allot([10, 50, 80], 100) == [None, 45, 45]          # 10 left 90 to share
+    limits = allot([300, 200, 100], 300)
+    assert limits == [100, 100, None] and sum(l or 100 for l in limits) <= 300
+
+
+def test_a_page_over_its_budget_holds_exact_windows_about_the_worst_region(tmp_path, monkeypatch):
+    """Where the whole films would pass VIEWER_BYTES, each viewer holds a
+    window of its film, every pixel exact, the data within the budget, and
+    the page shows the whole film as a picture."""
+    from mcillum.validation.report import page as page_module
+
+    run = fake_run_dir(tmp_path)
+    whole = open(report.build(str(run)), encoding="utf-8").read()
+    full = sum(len(t.encode()) for t in re.findall(r"class=vbin data-n=\d+>(.*?)</script>",
+                                                   whole, re.S))
+    monkeypatch.setattr(page_module, "VIEWER_BYTES", full // 3)
+    text = open(report.build(str(run)), encoding="utf-8").read()
+    data = re.findall(r"class=vbin data-n=\d+>(.*?)</script>", text, re.S)
+    assert sum(len(t.encode()) for t in data) <= full // 3
+    for part in re.split(r'<div class=viewer id="', text)[1:]:
+        scene = part.split("-viewer", 1)[0]
+        spec = json.loads(re.search(r'class=vdata>(.*?)</script>', part, re.S).group(1))
+        x0, y0 = spec["origin"]
+        assert spec["w"] == spec["h"] < 32 and "the whole film" in part
+        ref = files.read_exr(run / "images" / scene / "display" / "reference.exr")[0]
+        got = viewer.unpack_half(blobs(part)[0], spec["h"], spec["w"])
+        window = ref[y0:y0 + spec["h"], x0:x0 + spec["w"], :3]
+        np.testing.assert_array_equal(got, window.astype(np.float16).astype(np.float32))
+        wy, wx, size = spec["worst"]            # the window is about the worst region
+        assert 0 <= wy + size / 2 < spec["h"] and 0 <= wx + size / 2 < spec["w"]

@@ -102,14 +102,18 @@ def _verdict(checks: list[Check]) -> tuple[str, str, str]:
     return "", "", ""
 
 
-def _efficiency(ratio) -> tuple[str, str]:
-    """(text, class) of an efficiency ÷ path: ok where its interval lies above
-    1, bad where below, plain where it straddles 1 or is a bound."""
+def _efficiency(ratio) -> tuple[str, str, str]:
+    """(value, what qualifies it, class) of an efficiency ÷ path: the class
+    ok where its interval lies above 1, bad where below, plain where it
+    straddles 1 or is a bound."""
     text = ratio_text(ratio)
-    if ratio is None or text == "—" or ratio.kind != "unbiased":
-        return text, ""
+    if ratio is None or text == "—":
+        return "", "", ""
+    head, _, rest = text.partition(" ")
+    if ratio.kind != "unbiased":
+        return head, rest, ""
     low, high = ratio.ci.low, ratio.ci.high
-    return text, "effup" if low > 1 else "effdown" if high < 1 else ""
+    return head, rest, "effup" if low > 1 else "effdown" if high < 1 else ""
 
 
 def matrix(res: Results, colours: dict) -> str:
@@ -139,13 +143,15 @@ def matrix(res: Results, colours: dict) -> str:
             glyph, cls, title = _verdict(checks.get((s.name, n), []))
             if n in by_design and cls != "bad":
                 glyph, cls, title = BY_DESIGN[0], BY_DESIGN[1], "biased by design: " + title
-            eff, eff_cls = ("", "")
+            value, detail, eff_cls = "", "", ""
             if s.speed is not None and n in s.speed.efficiency_vs_path and n != "path":
-                eff, eff_cls = _efficiency(s.speed.efficiency_vs_path[n])
+                value, detail, eff_cls = _efficiency(s.speed.efficiency_vs_path[n])
             cells.append(
                 f"<td class='cell {eff_cls}' title='{html.escape(title, quote=True)}'>"
                 f"<a href='#{html.escape(evidence_anchor(s.name, n))}'><span class={cls}>"
-                f"{glyph}</span> <small>{html.escape(eff)}</small></a></td>")
+                f"{glyph}</span> {html.escape(value)}"
+                + (f"<br><small>{html.escape(detail)}</small>" if detail else "")
+                + "</a></td>")
         rows.append(f"<tr><th>{swatch(n, colours)}</th>{''.join(cells)}</tr>")
     return f"""<section id=matrix><h2>Estimators × scenes</h2>
 <p>Each cell: the worst verdict of that estimator's checks on that scene (✓ pass, ✗ fail,
@@ -160,7 +166,8 @@ evidence.</p>
 
 CSS = """
 .attention{padding-left:18px} .att{margin:6px 0} .att .row{margin:4px 0 0}
-.wide{overflow-x:auto} .matrix td.cell{white-space:nowrap;text-align:left}
+.wide{overflow-x:auto} .matrix td.cell{text-align:left;font-size:12px;min-width:70px}
+.matrix td.cell small{color:#555} .matrix th{white-space:nowrap}
 .matrix a{color:inherit;text-decoration:none} .matrix th{text-align:left;font-weight:normal}
 .matrix tr:first-child th{font-weight:bold}
 .effup{background:#e6f4ea} .effdown{background:#fdecea}

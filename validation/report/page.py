@@ -32,7 +32,7 @@ from ..stats import metrics
 from . import charts, overview, viewer
 from .failures import failures_section
 from .parts import swatch
-from .scenes import scene_section
+from .scenes import display, scene_section
 
 
 def _executor(where: dict) -> str:
@@ -69,6 +69,26 @@ table{border-collapse:collapse;margin:10px 0;font-size:13px} td,th{border:1px so
 """
 
 
+#: The bytes the viewers' data may take on one page, all scenes together: the
+#: renders are most of a page, and a page of much over 10 MB is slow to open
+#: and to mail. The full profile's exact renders would take about 15 MB.
+VIEWER_BYTES = 6_000_000
+
+
+def allot(wanted: list[int], budget: int) -> list[int | None]:
+    """Each scene's limit on its viewer's data: an equal share of ``budget``,
+    where a scene that needs less leaves the rest to the others; None (no
+    limit) where all fit."""
+    if sum(wanted) <= budget:
+        return [None] * len(wanted)
+    limits, left = [0] * len(wanted), budget
+    order = sorted(range(len(wanted)), key=wanted.__getitem__)
+    for k, i in enumerate(order):
+        limits[i] = min(wanted[i], left // (len(order) - k))
+        left -= limits[i]
+    return [None if limits[i] >= wanted[i] else limits[i] for i in range(len(wanted))]
+
+
 def build(run_dir: str, res: Results | None = None) -> str:
     """Write ``run_dir/report/index.html`` from ``res`` (read from
     ``run_dir/results.json`` when not given); return its path. Raises
@@ -99,7 +119,10 @@ def _write(run_dir: str, res: Results) -> str:
     summary = (f'<section id="summary"><h2>Summary across scenes</h2>'
                f'{charts.efficiency_summary(res, colours)}</section>') if timed else ""
     by_design = {n for n, f in res.estimator_facts.items() if not f.unbiased}
-    body = "".join(scene_section(s, run_dir, colours, by_design) for s in res.scenes)
+    shots = [display(s, run_dir, colours) for s in res.scenes]
+    limits = allot([0 if d is None else d.viewer_bytes() for d in shots], VIEWER_BYTES)
+    body = "".join(scene_section(s, run_dir, colours, by_design, d, limit)
+                   for s, d, limit in zip(res.scenes, shots, limits))
     page = f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8">
 <meta http-equiv="Content-Security-Policy" content="default-src 'none'; img-src data:; style-src 'unsafe-inline'; script-src 'unsafe-inline'">

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import html
 import os
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -14,15 +15,18 @@ from mcillum import files, images
 from ..results import SceneResult, kinds_shown, layout, ranking_text, ratio_text, relmse_text
 from ..stats import metrics
 from . import charts
-from .parts import (ERROR_LEVELS, FLIP_LEVELS, fmt, img, map_colours, outcome, render, swatch,
-                    worst_window)
+from .parts import ERROR_LEVELS, FLIP_LEVELS, fmt, map_colours, outcome, swatch, worst_window
 from .overview import evidence_anchor
-from .viewer import Shown, viewer
+from .viewer import Shown, viewer, viewer_bytes
 
 
 def scene_section(scene: SceneResult, run_dir: str, colours: dict,
-                   by_design=frozenset()) -> str:
-    speed = _speed_section(scene, run_dir, colours) if scene.speed else ""
+                  by_design=frozenset(), shots: Display | None = None,
+                  max_bytes: int | None = None) -> str:
+    """The section of ``scene``; ``shots`` its :func:`display` (read here
+    when not given), its viewer's data within ``max_bytes``."""
+    shots = shots if shots is not None else display(scene, run_dir, colours)
+    speed = _speed_section(scene, shots, colours, max_bytes) if scene.speed else ""
     return f"""
 <section id="{scene.name}">
 <h2>{html.escape(scene.name)} <small>max_depth {scene.max_depth}</small></h2>
@@ -179,40 +183,57 @@ def _load(sp) -> str:
             "quiet machine to compare with other runs.</p>")
 
 
-def _speed_section(scene: SceneResult, run_dir: str, colours: dict) -> str:
-    """The speed-and-images stage: equal-time images at the display
-    resolution, error and FLIP maps, the worst region, accuracy against time."""
+@dataclass(frozen=True)
+class Display:
+    """A scene's equal-time renders as the report shows them: the viewer's
+    images (the reference first), the exposure, each estimator's relative
+    error map against the reference, and their estimators."""
+    shown: list
+    exposure: float
+    errors: list
+    names: list
+
+    def viewer_bytes(self) -> int:
+        """What the viewer's data of every image would take on the page."""
+        return viewer_bytes(self.shown)
+
+
+def display(scene: SceneResult, run_dir: str, colours: dict) -> Display | None:
+    """The speed stage's images of ``scene`` (None without the stage)."""
     sp = scene.speed
+    if sp is None:
+        return None
     d = layout.display_dir(run_dir, scene.name)
     ref, _ = files.read_exr(os.path.join(d, "reference.exr"))
-    ev = images.exposure_for(ref)
-    top = sp.budgets[-1]
-    names = list(top.estimators)
-    shots, flips = {}, {}
+    names = list(sp.budgets[-1].estimators)
+    shown = [Shown("reference", f"reference (path), {sp.reference.spp} spp", ref)]
     for n in names:
-        shots[n] = files.read_exr(os.path.join(d, f"{n}.exr"))
-        if not np.isnan(sp.mean_flip.get(n, np.nan)):
-            flips[n] = files.read_exr(os.path.join(d, f"{n}.exr"), "flip")[0][..., 0]
-    side = 256                              # 128² at 2×, 256² as it is
-    shown = lambda a: render(images.tonemap(a, ev))  # noqa: E731
-    pictures = [Shown("reference", f"reference (path), {sp.reference.spp} spp", ref)]
-    for n in names:
-        x, meta = shots[n]
+        x, meta = files.read_exr(os.path.join(d, f"{n}.exr"))
         flip = sp.mean_flip.get(n, np.nan)
-        pictures.append(Shown(n, f"{swatch(n, colours)}: {meta['spp']} spp, "
-                                 f"{meta['render_seconds'] * 1e3:.0f} ms"
-                                 + ("" if np.isnan(flip) else f", mean FLIP {flip:.3f}"),
-                              x, flips.get(n)))
-    errors = [metrics.relative_error_map(shots[n][0], ref) for n in names]
+        shown.append(Shown(n, f"{swatch(n, colours)}: {meta['spp']} spp, "
+                              f"{meta['render_seconds'] * 1e3:.0f} ms"
+                              + ("" if np.isnan(flip) else f", mean FLIP {flip:.3f}"), x,
+                           None if np.isnan(flip) else
+                           files.read_exr(os.path.join(d, f"{n}.exr"), "flip")[0][..., 0]))
+    errors = [metrics.relative_error_map(s.pixels, ref) for s in shown[1:]]
+    return Display(shown, images.exposure_for(ref), errors, names)
+
+
+def _speed_section(scene: SceneResult, shots: Display, colours: dict,
+                   max_bytes: int | None = None) -> str:
+    """The speed-and-images stage: equal-time images at the display
+    resolution in a viewer (its data within ``max_bytes``), error and FLIP
+    maps, the worst region, accuracy against time."""
+    sp = scene.speed
+    top = sp.budgets[-1]
+    names, errors, ev = shots.names, shots.errors, shots.exposure
     positive = np.concatenate([e[e > 0].ravel() for e in errors] + [np.array([1e-3])])
     vmax = max(float(np.percentile(positive, 99)), 1e-2)
     vmin = vmax / 1e3
     means = ", ".join(f"{n} {e.mean():.3g}" for n, e in zip(names, errors))
-    flip_means = ", ".join(f"{n} {sp.mean_flip[n]:.3f}" for n in names if n in flips)
+    flip_means = ", ".join(f"{s.label} {sp.mean_flip[s.label]:.3f}"
+                           for s in shots.shown[1:] if s.flip is not None)
     y, x0, size = worst_window(errors)
-    crop = lambda a: a[y:y + size, x0:x0 + size]  # noqa: E731
-    crops = [img(shown(crop(ref)), "reference", side // 2)]
-    crops += [img(shown(crop(shots[n][0])), n, side // 2) for n in names]
     notes = "".join(f"<li>{html.escape(n)}</li>" for n in sp.notes)
     ref_info = sp.reference
     capped = f" — capped ({html.escape(ref_info.capped)})" if ref_info.capped else ""
@@ -224,19 +245,18 @@ below), corrected where its measured times missed the budget. Reference: <code>p
 {ref_info.spp} spp in {ref_info.passes} passes{capped}.{_timed_on(sp)} Tone mapping: the
 viewer starts at {_scaling(ev)}, clipped to [0, 1], sRGB, dithered by half an 8-bit level.
 Captions: spp and the measured time of the render shown.</p>
-{viewer(f"{scene.name}-viewer", pictures, ev, (vmin, vmax))}
+{viewer(f"{scene.name}-viewer", shots.shown, ev, (vmin, vmax), (y, x0, size), max_bytes)}
 <p class=desc>Keys 1–9 and 0 (or the buttons, or the arrows) flip between the images at one
 zoom and pan; the wheel zooms, a drag pans, a double-click fits. <b>i</b>, <b>e</b>, <b>f</b>:
 the image, its relative error |x−r|/(|r|+{metrics.EPSILON}) (mean over channels, the shared
 logarithmic scale below), its FLIP map (HDR mode: flip-evaluator tone-maps both images, ACES,
-exposures from the reference; 0 = no visible difference). <b>+</b>/<b>−</b>: exposure. The
-data are the renders' own, as half floats. Mean relative error: {means}. Mean FLIP:
+exposures from the reference; 0 = no visible difference). <b>+</b>/<b>−</b>: exposure.
+<b>w</b>: the worst region ({size}×{size} px at x={x0}, y={y}, by the relative error summed over
+estimators). The data are the renders' own, as half floats. Mean relative error: {means}. Mean FLIP:
 {flip_means or 'undefined here (the reference is black)'}.</p>
 <div class=row><div class=bar>{charts.colour_bar(vmin, vmax, map_colours(ERROR_LEVELS),
                                   "relative error (shared scale)")}</div>
 <div class=bar>{charts.colour_bar(0.0, 1.0, map_colours(FLIP_LEVELS), "FLIP", log=False)}</div></div>
-<h4>Worst region ({size}×{size} px at x={x0}, y={y}, by summed relative error)</h4>
-<div class=row>{''.join(crops)}</div>
 <h4>Accuracy against time</h4>
 <div class=row>{charts.error_vs_time(scene, colours)}</div>
 {_load(sp)}

@@ -2,11 +2,17 @@
 
 Each render reaches the page as half floats (IEEE binary16, the nearest to
 the float32 EXR: values beyond ±65504 are clamped there), stored by channel
-planes, low bytes then high bytes, deflated (zlib) and base64-encoded: the
+planes, low bytes then high bytes, and deflated (zlib). The planes are G, then R and B as their difference
+from G in binary16's bit patterns (mod 2^16: exact, and for positive values
+the ratio to G in steps of 2^-10): a path tracer's channels share their
+paths, so their noise moves together and the differences are smaller. The
 high bytes (sign, exponent, top of the mantissa) are what repeats, and
-splitting them from the noisy low bytes is what lets deflate find it. The
-browser inflates them with its own ``DecompressionStream``; no network, no
-library.
+splitting them from the noisy low bytes is what lets deflate find it. A
+noisy render's low bytes are close to incompressible: these steps bring it
+near its entropy (about 10 bits a value). The deflated bytes are then
+written 7 bits to a character (:func:`pack_text`) in an element of their own:
+a character per 7 bits where base64 needs one per 6. The browser inflates
+them with its own ``DecompressionStream``; no network, no library.
 
 The page's script (:data:`SCRIPT`, one for every viewer) shows one image of a
 scene at a time on a canvas, at one zoom and pan for all of them, and lets a
@@ -19,7 +25,6 @@ render shows no contour that its data does not have.
 
 from __future__ import annotations
 
-import base64
 import html
 import json
 import zlib
@@ -27,8 +32,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mcillum import images
+
 from ..stats import metrics
-from .parts import ERROR_LEVELS, FLIP_LEVELS, map_colours
+from .parts import ERROR_LEVELS, FLIP_LEVELS, img, map_colours, render
 
 HALF_MAX = 65504.0              # the largest finite binary16
 VIEW_SIDE = 512                 # the viewer's canvas on screen, CSS pixels
@@ -51,34 +58,84 @@ def _planes(u16: np.ndarray) -> bytes:
     return (flat & 0xFF).astype(np.uint8).tobytes() + (flat >> 8).astype(np.uint8).tobytes()
 
 
-def pack_half(image: np.ndarray) -> str:
-    """The RGB of ``image`` (H, W, ≥3) as base64 of the deflated binary16
-    planes (R, G, B; each row-major, top row first). NaN becomes 0 and ±∞
-    or anything beyond ±HALF_MAX becomes ±HALF_MAX (a render has neither:
-    the statistics count them)."""
+# Seven-bit values a <script> element's text cannot carry as they are: NUL
+# (the parser replaces it), CR (it becomes LF) and "<" (it could close the
+# element). Each is written as one character of U+0100–U+017F (two bytes of
+# UTF-8) together with the seven bits that follow it, so every byte of the
+# page still carries seven bits.
+UNSAFE = (0, 13, 60)
+ESCAPE = 0x100
+
+
+def pack_text(data: bytes) -> str:
+    """``data`` as text for a <script type="application/octet-stream">: its
+    bits, zero-padded to a multiple of 7, seven to a character (see
+    :data:`UNSAFE`). :func:`unpack_text` needs ``len(data)`` back."""
+    bits = np.unpackbits(np.frombuffer(data, np.uint8))
+    bits = np.concatenate([bits, np.zeros(-bits.size % 7 + 7, np.uint8)])  # (+ 7: a spare)
+    values = bits.reshape(-1, 7) @ (1 << np.arange(6, -1, -1))
+    codes = values.copy()
+    taken = np.zeros(values.size, bool)          # absorbed by the escape before it
+    for k in np.flatnonzero(np.isin(values[:-1], UNSAFE)):   # (not the spare)
+        if not taken[k]:
+            codes[k] = ESCAPE + (UNSAFE.index(int(values[k])) << 7) + values[k + 1]
+            taken[k + 1] = True
+    return "".join(map(chr, codes[~taken][:-1] if not taken[-1] else codes[~taken]))
+
+
+def unpack_text(text: str, size: int) -> bytes:
+    """The inverse of :func:`pack_text`: the first ``size`` bytes. Raises
+    ValueError where ``text`` holds fewer."""
+    values = []
+    for c in map(ord, text):
+        if c < 128:
+            values.append(c)
+        else:
+            values += [UNSAFE[(c - ESCAPE) >> 7], c & 127]
+    bits = ((np.array(values, np.int64)[:, None] >> np.arange(6, -1, -1)) & 1).astype(np.uint8)
+    data = np.packbits(bits.ravel())
+    if data.size < size:
+        raise ValueError(f"the text holds {data.size} bytes, not {size}")
+    return data[:size].tobytes()
+
+
+def _blob(data: bytes) -> str:
+    return (f'<script type="application/octet-stream" class=vbin data-n={len(data)}>'
+            f"{pack_text(data)}</script>")
+
+
+def pack_half(image: np.ndarray) -> bytes:
+    """The RGB of ``image`` (H, W, ≥3) as the deflated binary16
+    planes (R − G, G, B − G as bit patterns mod 2^16; each row-major, top
+    row first). NaN becomes 0 and ±∞ or anything beyond ±HALF_MAX becomes
+    ±HALF_MAX (a render has neither: the statistics count them)."""
     rgb = np.nan_to_num(np.asarray(image, np.float32)[..., :3], nan=0.0,
                         posinf=HALF_MAX, neginf=-HALF_MAX)
     half = np.clip(rgb, -HALF_MAX, HALF_MAX).astype(np.float16)
-    planes = np.ascontiguousarray(half.transpose(2, 0, 1)).view(np.uint16)
-    return base64.b64encode(zlib.compress(_planes(planes), 9)).decode()
+    planes = np.ascontiguousarray(half.transpose(2, 0, 1)).view(np.uint16).copy()
+    planes[[0, 2]] -= planes[1]                  # (uint16: wraps, mod 2^16)
+    return zlib.compress(_planes(planes), 9)
 
 
-def unpack_half(text: str, height: int, width: int) -> np.ndarray:
+def unpack_half(packed: bytes, height: int, width: int) -> np.ndarray:
     """The inverse of :func:`pack_half`: (H, W, 3) float32. Raises
-    ValueError if ``text`` does not hold H·W·3 half floats."""
-    data = np.frombuffer(zlib.decompress(base64.b64decode(text)), np.uint8)
+    ValueError if ``packed`` does not hold H·W·3 half floats."""
+    data = np.frombuffer(zlib.decompress(packed), np.uint8)
     n = height * width * 3
     if data.size != 2 * n:
         raise ValueError(f"expected {2 * n} bytes of half floats, got {data.size}")
-    u16 = data[:n].astype(np.uint16) | (data[n:].astype(np.uint16) << 8)
+    u16 = (data[:n].astype(np.uint16) | (data[n:].astype(np.uint16) << 8)).reshape(3, -1)
+    u16[[0, 2]] += u16[1]
     return u16.view(np.float16).astype(np.float32).reshape(3, height, width).transpose(1, 2, 0)
 
 
-def pack_levels(level: np.ndarray) -> str:
-    """A map in [0, 1] (H, W; NaN as 0) as base64 of deflated 8-bit levels
-    (round(255·level)): finer than the FLIP_LEVELS steps it is shown in."""
-    q = np.round(np.clip(np.nan_to_num(np.asarray(level, np.float64)), 0, 1) * 255)
-    return base64.b64encode(zlib.compress(q.astype(np.uint8).tobytes(), 9)).decode()
+def pack_levels(level: np.ndarray, levels: int = FLIP_LEVELS) -> bytes:
+    """A map in [0, 1] (H, W; NaN as 0) as its deflated step indices: floor(level·levels), clipped to levels − 1, the colour step each
+    pixel is shown in (as :func:`.parts.flip_map` draws it). Half the bytes
+    of 8-bit levels, and a reader reads a step, not a value, off a map."""
+    level = np.clip(np.nan_to_num(np.asarray(level, np.float64)), 0, 1)
+    q = np.minimum((level * levels).astype(np.int64), levels - 1)
+    return zlib.compress(q.astype(np.uint8).tobytes(), 9)
 
 
 def _palette(levels: int) -> list[str]:
@@ -86,21 +143,60 @@ def _palette(levels: int) -> list[str]:
             map_colours(levels)(np.arange(levels), bytes=True)]
 
 
+def _packed(shown: list[Shown]) -> list[bytes]:
+    """Each image's data, then its FLIP map where it has one, in that order."""
+    return [b for s in shown for b in
+            [pack_half(s.pixels)] + ([] if s.flip is None else [pack_levels(s.flip)])]
+
+
+def viewer_bytes(shown: list[Shown]) -> int:
+    """The bytes (UTF-8) that a viewer of ``shown`` writes for its data."""
+    return sum(-(-8 * len(b) // 7) for b in _packed(shown))
+
+
+def window(height: int, width: int, worst: tuple[int, int, int] | None,
+           share: float) -> tuple[int, int, int]:
+    """(y, x, side) of the square about ``share`` of the film's pixels,
+    centred on the worst region (else the film's centre), inside the film."""
+    side = max(1, min(height, width, int(np.sqrt(share * height * width))))
+    cy, cx = ((worst[0] + worst[2] / 2, worst[1] + worst[2] / 2) if worst
+              else (height / 2, width / 2))
+    y = int(np.clip(round(cy - side / 2), 0, height - side))
+    x = int(np.clip(round(cx - side / 2), 0, width - side))
+    return y, x, side
+
+
 def viewer(anchor: str, shown: list[Shown], exposure: float,
-           error_scale: tuple[float, float]) -> str:
+           error_scale: tuple[float, float], worst: tuple[int, int, int] | None = None,
+           max_bytes: int | None = None) -> str:
     """The HTML of one viewer: ``shown[0]`` is the reference; ``exposure``
     the starting EV; ``error_scale`` (vmin, vmax) the relative-error map's
-    logarithmic scale, shared with the page's colour bar. Raises ValueError
-    if the images differ in size."""
+    logarithmic scale, shared with the page's colour bar; ``worst`` (y, x,
+    size) a region the key w zooms to. Where the data of the whole film
+    would exceed ``max_bytes``, the viewer holds the square window about
+    the worst region that fits, every pixel of it exact, and the page shows
+    the whole film beside it as a picture. Raises ValueError if the images
+    differ in size."""
     h, w = shown[0].pixels.shape[:2]
     if any(s.pixels.shape[:2] != (h, w) for s in shown):
         raise ValueError("a viewer's images must share one size")
-    spec = {"w": w, "h": h, "ev": exposure, "eps": metrics.EPSILON,
+    whole, origin, full = shown, (0, 0), viewer_bytes(shown)
+    if max_bytes is not None and full > max_bytes:
+        # bytes go with pixels; 0.95: room for what the window's content adds
+        y0, x0, side = window(h, w, worst, 0.95 * max_bytes / full)
+        cut = lambda a: None if a is None else a[y0:y0 + side, x0:x0 + side]  # noqa: E731
+        shown = [Shown(s.label, s.caption, cut(s.pixels), cut(s.flip)) for s in shown]
+        origin, h, w = (x0, y0), side, side
+        if worst:
+            worst = (worst[0] - y0, worst[1] - x0, worst[2])
+    spec = {"w": w, "h": h, "ev": exposure, "eps": metrics.EPSILON, "worst": worst,
+            "origin": origin,
             "errorScale": list(error_scale), "errorPalette": _palette(ERROR_LEVELS),
             "flipPalette": _palette(FLIP_LEVELS),
-            "images": [{"label": s.label, "caption": s.caption, "data": pack_half(s.pixels),
-                        "flip": None if s.flip is None else pack_levels(s.flip)}
-                       for s in shown]}
+            "images": [{"label": s.label, "caption": s.caption} for s in shown]}
+    blobs = "".join(map(_blob, _packed(shown)))
+    for im, s in zip(spec["images"], shown):
+        im["flip"] = s.flip is not None
     buttons = "".join(
         f'<button type=button data-i="{i}" title="key {(i + 1) % 10 if i < 10 else ""}">'
         f'<kbd>{(i + 1) % 10 if i < 10 else ""}</kbd> {html.escape(s.label)}</button>'
@@ -115,13 +211,26 @@ value=error> relative error <kbd>e</kbd></label><label><input type=radio
 name="{html.escape(anchor)}-mode" value=flip> FLIP <kbd>f</kbd></label>
 <label>EV <input type=range class=ev min=-12 max=12 step=0.5 value="{exposure:g}">
 <output class=evtext>{exposure:+.1f}</output></label> <kbd>−</kbd><kbd>+</kbd>
-<button type=button class=reset title="key 0 on the keypad or double-click">fit</button></div>
+<button type=button class=reset title="or double-click">fit</button>
+{'<button type=button class=worst title="key w">worst region <kbd>w</kbd></button>' if worst else ''}</div>
 <div class=vmain><div class=vport style="width:{VIEW_SIDE}px;height:{VIEW_SIDE}px">
 <canvas width={w} height={h}></canvas></div>
 <div class=vside><p class=vcap></p><table class=vpix></table></div></div>
-<script type="application/json" class=vdata>{data}</script>
-<noscript><p>The viewer needs JavaScript; the worst region below is a static picture.</p></noscript>
-</div>"""
+<script type="application/json" class=vdata>{data}</script>{blobs}
+<noscript><p>The viewer needs JavaScript.</p></noscript>
+</div>{_whole(whole[0], exposure, origin, h) if shown is not whole else ""}"""
+
+
+def _whole(reference: Shown, exposure: float, origin: tuple[int, int], side: int) -> str:
+    """The whole film of a viewer that holds a window of it: the reference
+    as a picture, and where the window lies."""
+    fh, fw = reference.pixels.shape[:2]
+    x0, y0 = origin
+    return (f"<div class=row>{img(render(images.tonemap(reference.pixels, exposure)), 'reference: the whole film', 128)}"
+            f"<p class=desc>The viewer holds the {side}×{side} px about the worst region "
+            f"(x {x0}–{x0 + side - 1}, y {y0}–{y0 + side - 1}) of the {fw}×{fh} film, every "
+            "pixel exact: the whole film of every estimator would pass the page's budget "
+            "for image data (report.page.VIEWER_BYTES).</p></div>")
 
 
 CSS = """
@@ -150,20 +259,32 @@ SCRIPT = r"""
     const v = e === 0 ? m * 2 ** -24 : e === 31 ? (m ? NaN : Infinity) : (1 + m / 1024) * 2 ** (e - 15);
     HALF[h] = h & 0x8000 ? -v : v;
   }
-  async function inflate(b64) {
-    const bin = atob(b64), bytes = new Uint8Array(bin.length);
-    for (let i = 0; i < bin.length; i++) bytes[i] = bin.charCodeAt(i);
-    const stream = new Blob([bytes]).stream().pipeThrough(new DecompressionStream("deflate"));
+  // Seven bits a character; an escape (U+0100–U+017F) carries an unsafe
+  // value and the seven bits after it (viewer.pack_text).
+  const UNSAFE = [0, 13, 60];
+  function bytesOf(el) {
+    const text = el.textContent, out = new Uint8Array(+el.dataset.n);
+    let acc = 0, held = 0, o = 0;
+    const put = v => { acc = (acc << 7) | v; held += 7; if (held >= 8) { held -= 8; if (o < out.length) out[o++] = (acc >> held) & 255; acc &= (1 << held) - 1; } };
+    for (let i = 0; i < text.length; i++) {
+      const c = text.charCodeAt(i);
+      if (c < 128) put(c); else { put(UNSAFE[(c - 256) >> 7]); put(c & 127); }
+    }
+    return out;
+  }
+  async function inflate(el) {
+    const stream = new Blob([bytesOf(el)]).stream().pipeThrough(new DecompressionStream("deflate"));
     return new Uint8Array(await new Response(stream).arrayBuffer());
   }
-  // Planes R, G, B of low bytes then high bytes → interleaved RGB float32.
-  async function halves(b64, n) {
-    const b = await inflate(b64), out = new Float32Array(3 * n), all = 3 * n;
-    for (let c = 0; c < 3; c++)
-      for (let i = 0; i < n; i++) {
-        const k = c * n + i;
-        out[3 * i + c] = HALF[b[k] | (b[all + k] << 8)];
-      }
+  // Planes R − G, G, B − G of low bytes then high bytes → interleaved RGB float32.
+  async function halves(el, n) {
+    const b = await inflate(el), out = new Float32Array(3 * n), all = 3 * n;
+    for (let i = 0; i < n; i++) {
+      const g = b[n + i] | (b[all + n + i] << 8);
+      out[3 * i] = HALF[(b[i] | (b[all + i] << 8)) + g & 0xffff];
+      out[3 * i + 1] = HALF[g];
+      out[3 * i + 2] = HALF[(b[2 * n + i] | (b[all + 2 * n + i] << 8)) + g & 0xffff];
+    }
     return out;
   }
   const srgb = x => x <= 0.0031308 ? 12.92 * x : 1.055 * Math.pow(x, 1 / 2.4) - 0.055;
@@ -176,8 +297,11 @@ SCRIPT = r"""
     const spec = JSON.parse(root.querySelector(".vdata").textContent);
     const n = spec.w * spec.h, canvas = root.querySelector("canvas"), port = root.querySelector(".vport");
     const ctx = canvas.getContext("2d"), pixels = ctx.createImageData(spec.w, spec.h);
-    const images = await Promise.all(spec.images.map(im => halves(im.data, n)));
-    const flips = await Promise.all(spec.images.map(im => im.flip ? inflate(im.flip) : null));
+    const blobs = [...root.querySelectorAll(".vbin")];
+    let b = 0;
+    const parts = spec.images.map(im => [blobs[b++], im.flip ? blobs[b++] : null]);
+    const images = await Promise.all(parts.map(([d]) => halves(d, n)));
+    const flips = await Promise.all(parts.map(([, f]) => f ? inflate(f) : null));
     const errPal = spec.errorPalette.map(hex), flipPal = spec.flipPalette.map(hex);
     const [vmin, vmax] = spec.errorScale, ref = images[0];
     const state = { i: 0, mode: "image", ev: spec.ev, zoom: 1, x: 0, y: 0, hover: null };
@@ -192,7 +316,7 @@ SCRIPT = r"""
             const e = rel(im, p), t = e <= vmin ? 0 : Math.min(1, Math.log(e / vmin) / Math.log(vmax / vmin));
             rgb = errPal[Math.min(errPal.length - 1, Math.floor(t * errPal.length))];
           } else if (state.mode === "flip") {
-            rgb = fl ? flipPal[Math.min(flipPal.length - 1, Math.floor(fl[p] / 255 * flipPal.length))] : [40, 40, 40];
+            rgb = fl ? flipPal[fl[p]] : [40, 40, 40];
           } else {
             const d = dither(x, y);
             rgb = [0, 1, 2].map(c => { const v = im[3 * p + c] * gain; return Math.floor(255 * srgb(v > 0 ? Math.min(v, 1) : 0) + d); });
@@ -219,9 +343,9 @@ SCRIPT = r"""
       const t = root.querySelector(".vpix"), h = state.hover;
       if (!h) { t.innerHTML = "<tr><td>point at a pixel to read every image's value there</td></tr>"; return; }
       const p = h.y * spec.w + h.x;
-      let rows = `<tr><th colspan=5>pixel x=${h.x}, y=${h.y}</th></tr><tr><th></th><th>R</th><th>G</th><th>B</th><th>rel. error · FLIP</th></tr>`;
+      let rows = `<tr><th colspan=5>pixel x=${h.x + spec.origin[0]}, y=${h.y + spec.origin[1]}</th></tr><tr><th></th><th>R</th><th>G</th><th>B</th><th>rel. error · FLIP</th></tr>`;
       images.forEach((im, k) => {
-        const f = flips[k] ? (flips[k][p] / 255).toFixed(3) : "—";
+        const f = flips[k] ? `${(flips[k][p] / flipPal.length).toFixed(2)}–${((flips[k][p] + 1) / flipPal.length).toFixed(2)}` : "—";
         rows += `<tr class="${k === state.i ? "on" : ""}" data-k="${k}"><td>${spec.images[k].label}</td>` +
           [0, 1, 2].map(c => `<td class=v>${fmt(im[3 * p + c])}</td>`).join("") +
           `<td>${k ? rel(im, p).toPrecision(3) : "—"} · ${f}</td></tr>`;
@@ -233,10 +357,22 @@ SCRIPT = r"""
     root.querySelectorAll("input[type=radio]").forEach(r => r.addEventListener("change", () => { state.mode = r.value; draw(); }));
     root.querySelector(".ev").addEventListener("input", e => { state.ev = +e.target.value; draw(); });
     root.querySelector(".reset").addEventListener("click", fit);
+    // The worst region: zoomed to fill the view, so its pixels can be read.
+    function worst() {
+      if (!spec.worst) return;
+      const [y, x, size] = spec.worst, side = Math.min(port.clientWidth, port.clientHeight);
+      state.zoom = Math.max(1, Math.floor(side / size));
+      state.x = (port.clientWidth - size * state.zoom) / 2 - x * state.zoom;
+      state.y = (port.clientHeight - size * state.zoom) / 2 - y * state.zoom;
+      place();
+    }
+    const worstButton = root.querySelector(".worst");
+    if (worstButton) worstButton.addEventListener("click", worst);
     root.addEventListener("keydown", e => {
       if (e.ctrlKey || e.metaKey || e.altKey) return;
       const k = e.key;
       if (/^[0-9]$/.test(k)) show((+k + 9) % 10);
+      else if (k === "w") worst();
       else if (k === "i" || k === "e" || k === "f") { state.mode = { i: "image", e: "error", f: "flip" }[k]; draw(); }
       else if (k === "+" || k === "=") { state.ev = Math.min(12, state.ev + 0.5); draw(); }
       else if (k === "-") { state.ev = Math.max(-12, state.ev - 0.5); draw(); }
@@ -267,8 +403,9 @@ SCRIPT = r"""
     fit(); draw();
     root.dataset.ready = "1";
   }
-  document.querySelectorAll(".viewer").forEach(v => setUp(v).catch(err => {
+  // (when every viewer is ready, in ms since navigation: how long a reader waits)
+  Promise.all([...document.querySelectorAll(".viewer")].map(v => setUp(v).catch(err => {
     v.insertAdjacentHTML("beforeend", `<p class=bad>The viewer could not decode its data: ${err}</p>`);
-  }));
+  }))).then(() => { document.documentElement.dataset.viewersReady = performance.now().toFixed(0); });
 })();
 """
