@@ -649,3 +649,32 @@ def test_a_figure_withheld_off_its_budget_reads_withheld_everywhere(tmp_path):
     page = open(report.build(str(run_dir)), encoding="utf-8").read()
     assert html.escape(f"withheld: {why}") in page
     assert "<svg" in charts.efficiency_summary(results.load(str(run_dir)), COLOURS)
+
+
+def test_the_page_opens_on_what_needs_attention_and_the_matrix(tmp_path):
+    """Failed checks first, then inconclusive ones, each linked to an element
+    of the page; the matrix gives each estimator × scene its worst verdict
+    and efficiency ÷ path, and links every cell to its scene's row."""
+    text = open(report.build(str(fake_run_dir(tmp_path))), encoding="utf-8").read()
+    head = text.split("<section id=matrix>", 1)[0]
+    assert text.index("id=attention") < text.index("id=matrix") < text.index('<section id="alpha">')
+    listed = re.findall(r"<li class=att><span class=(\w+)>.</span> <a href='#([^']+)'>"
+                        r"<code>([^<]+)</code>", head)
+    assert [c for _, _, c in listed] == ["alpha/uniform_hemisphere/unbiased",
+                                         "beta/uniform_hemisphere/unbiased",
+                                         "beta/cosine_hemisphere/unbiased"]
+    assert [cls for cls, _, _ in listed] == ["bad", "bad", "warn"]
+    ids = set(re.findall(r"""id=['"]?([^'" >]+)""", text))
+    assert all(target in ids for _, target, _ in listed)
+    matrix = text.split("<section id=matrix>", 1)[1].split("</section>", 1)[0]
+    rows = {re.search(r"</span>([a-z_]+)</th>", r).group(1): r
+            for r in re.findall(r"<tr><th><span class=sw.*?</tr>", matrix)}
+    glyphs = {n: re.findall(r"<span class=(?:ok|bad|warn|desc)>(.)</span>", r)
+              for n, r in rows.items()}
+    assert glyphs == {"uniform_hemisphere": ["✗", "✗"], "cosine_hemisphere": ["✓", "?"],
+                      "path": ["✓", "✓"]}
+    links = re.findall(r"<a href='#([^']+)'>", matrix)
+    assert links and all(link in ids for link in links)
+    assert "alpha--uniform_hemisphere" in links
+    # efficiencies ÷ path: uniform's interval lies below 1, so its cell is red
+    assert re.search(r"class='cell effdown'[^>]*><a href='#alpha--uniform_hemisphere'>", matrix)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import html
 import os
+import re
 
 from mcillum import files, images
 
@@ -109,7 +110,11 @@ def _efficiency(ratio) -> tuple[str, str, str]:
     text = ratio_text(ratio)
     if ratio is None or text == "—":
         return "", "", ""
-    head, _, rest = text.partition(" ")
+    if ratio.kind == "off_budget":
+        return "withheld", f"(off its time budget: {ratio.reason})", ""
+    # the value ("0.48", "≤ 3e-05", "≥ 2.1"), then its interval or what bounds it
+    head, rest = re.match(r"(.*?)(?: ([\[(].*))?$", text).groups()
+    rest = rest or ""
     if ratio.kind != "unbiased":
         return head, rest, ""
     low, high = ratio.ci.low, ratio.ci.high
