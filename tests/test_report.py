@@ -274,8 +274,12 @@ def fake_run_dir(tmp_path, res=None):
         for e in s.estimators:
             noisy = (ref * rng.uniform(0.5, 1.5, ref.shape)).astype(np.float32)
             files.write_exr(d / f"{e.name}_spp{e.top.spp}.exr", noisy)
+            # its per-pixel test: one rejected pixel, (x 7, y 0), for uniform
+            p = np.full((8, 8, 1), 0.5, np.float32)
+            p[0, 7] = 1e-9 if e.name == "uniform_hemisphere" else 0.5
             files.write_exr(d / f"{e.name}_spp{e.top.spp}_mean.exr",
-                            (ref * rng.uniform(0.9, 1.1, ref.shape)).astype(np.float32))
+                            (ref * rng.uniform(0.9, 1.1, ref.shape)).astype(np.float32),
+                            {"alpha_pixel": 1e-5}, {"p": p})
         (d / "display").mkdir()
         big = rng.uniform(0.2, 1.0, (32, 32, 3)).astype(np.float32)
         files.write_exr(d / "display" / "reference.exr", big)

@@ -73,6 +73,12 @@ def test_correct_estimators_pass_and_outputs_are_complete(llvm, tiny_profile, tm
             assert all(r["nonfinite_fraction"] == 0 for r in est["runs"])
         assert scene["reference"]["passes"] >= references.MIN_PASSES
         assert (out / "images" / scene["name"] / "reference.exr").is_file()
+        for est in scene["estimators"]:         # the per-pixel test the viewer shows
+            p, meta = files.read_exr(out / "images" / scene["name"]
+                                     / f"{est['name']}_spp{scene['ladder'][-1]}_mean.exr", "p")
+            u = est["unbiasedness"]
+            assert float(meta["alpha_pixel"]) == pytest.approx(u["alpha_pixel"])
+            assert np.nanmin(p[..., 0]) == pytest.approx(u["min_p"], rel=1e-5, abs=1e-30)
     speed = data["scenes"][1]["speed"]                      # cap_plane has a display
     assert "speed" not in data["scenes"][0] and speed["res"] == 32
     assert set(speed["cost_model"]) == set(speed["efficiency_vs_path"]) == \
@@ -91,7 +97,7 @@ def test_correct_estimators_pass_and_outputs_are_complete(llvm, tiny_profile, tm
     with pytest.raises(jsonschema.ValidationError):   # the schema checks the speed object
         jsonschema.validate(broken, schema)
     page = (out / "report" / "index.html").read_text()
-    assert not re.search(r"\$[a-z_]+", re.sub(r"<(svg|style).*?</\1>", "", page, flags=re.S))
+    assert not re.search(r"\$[a-z_]+", re.sub(r"<(svg|style|script)\b.*?</\1>", "", page, flags=re.S))
     assert "albedo 0.5" in page                             # placeholders show their values
     rows = (out / "results.csv").read_text().splitlines()
     assert rows[0].startswith("scene,estimator,spp")

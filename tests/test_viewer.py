@@ -85,8 +85,9 @@ def test_the_report_ships_each_display_render_as_its_data(tmp_path):
             exr = files.read_exr(d / f"{im['label']}.exr")[0][..., :3]
             got = viewer.unpack_half(next(data), spec["h"], spec["w"])
             np.testing.assert_array_equal(got, exr.astype(np.float16).astype(np.float32))
-            if im["flip"]:
-                next(data)
+            for extra in ("flip", "test"):        # (their own blobs follow)
+                if im[extra]:
+                    next(data)
 
 
 # ------------------------------ In a real browser ------------------------------
@@ -164,6 +165,11 @@ def test_keys_pointer_and_exposure_work_in_chromium(tmp_path):
             # the page prints 5 significant digits of the binary16 value
             np.testing.assert_allclose(shown, want, rtol=1e-4)
             assert abs(shown - exr[y, x, :3]).max() <= 2 ** -11 * abs(exr[y, x, :3]).max() * 1.01
+            # the statistics film is 8² of the display's 32²: pixel (x//4, y//4),
+            # where only (7, 0) was rejected
+            test = root.find_elements("css selector", ".vpix tr.on td")[-1].text
+            assert test.startswith("✗ rejected" if (x // 4, y // 4) == (7, 0) else "✓"), test
+            assert test.endswith(f"at ({x // 4}, {y // 4})")
 
         root.send_keys("+")
         assert driver.execute_script(CANVAS_SUM, root) > second  # brighter

@@ -4,6 +4,7 @@ against time), the small-image statistics and the quadrature stage."""
 
 from __future__ import annotations
 
+import dataclasses
 import html
 import os
 from dataclasses import dataclass
@@ -17,7 +18,7 @@ from ..stats import metrics
 from . import charts
 from .parts import ERROR_LEVELS, FLIP_LEVELS, fmt, map_colours, outcome, swatch, worst_window
 from .overview import evidence_anchor
-from .viewer import Shown, viewer, viewer_bytes
+from .viewer import Shown, Test, viewer, viewer_bytes
 
 
 def scene_section(scene: SceneResult, run_dir: str, colours: dict,
@@ -215,8 +216,24 @@ def display(scene: SceneResult, run_dir: str, colours: dict) -> Display | None:
                               + ("" if np.isnan(flip) else f", mean FLIP {flip:.3f}"), x,
                            None if np.isnan(flip) else
                            files.read_exr(os.path.join(d, f"{n}.exr"), "flip")[0][..., 0]))
+    shown[1:] = [dataclasses.replace(s, test=_test(run_dir, scene, s.label)) for s in shown[1:]]
     errors = [metrics.relative_error_map(s.pixels, ref) for s in shown[1:]]
     return Display(shown, images.exposure_for(ref), errors, names)
+
+
+def _test(run_dir: str, scene: SceneResult, name: str) -> Test | None:
+    """``name``'s per-pixel unbiasedness test on the statistics film (the p
+    layer of its K-render mean, stages/scene.py); None where the run has
+    none (not tested, or a run before the layer was written)."""
+    path = os.path.join(layout.images_dir(run_dir, scene.name),
+                        f"{name}_spp{scene.ladder[-1]}_mean.exr")
+    if not os.path.isfile(path):
+        return None
+    try:
+        p, meta = files.read_exr(path, "p")
+    except ValueError:                  # (no p layer)
+        return None
+    return Test(p[..., 0], float(meta["alpha_pixel"]))
 
 
 def _speed_section(scene: SceneResult, shots: Display, colours: dict,

@@ -42,14 +42,38 @@ VIEW_SIDE = 512                 # the viewer's canvas on screen, CSS pixels
 
 
 @dataclass(frozen=True)
+class Test:
+    """An estimator's per-pixel unbiasedness test on the statistics film (a
+    coarser film of the same camera): the smallest p over channels per
+    pixel (NaN: not tested) and the level a pixel is rejected below."""
+    p: np.ndarray
+    alpha_pixel: float
+
+
+@dataclass(frozen=True)
 class Shown:
     """One image of a viewer: its label (a button), a caption, its pixels
-    (H, W, ≥3 linear RGB) and its FLIP map against the reference (H, W) in
-    [0, 1], or None."""
+    (H, W, ≥3 linear RGB), its FLIP map against the reference (H, W) in
+    [0, 1] or None, and its per-pixel :class:`Test` or None."""
     label: str
     caption: str
     pixels: np.ndarray
     flip: np.ndarray | None = None
+    test: Test | None = None
+
+
+#: −log10 p in steps of 0.1 as a byte; 255: not tested.
+P_STEP, P_NONE = 0.1, 255
+
+
+def pack_test(p: np.ndarray) -> bytes:
+    """Per-pixel p-values (H, W) as deflated bytes of round(−log10 p / 0.1),
+    at most 254 (p below 1e-25.4 reads as that); NaN as :data:`P_NONE`."""
+    p = np.asarray(p, np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        q = np.round(-np.log10(np.clip(p, 1e-300, 1.0)) / P_STEP)
+    q = np.where(np.isfinite(p), np.minimum(q, P_NONE - 1), P_NONE)
+    return zlib.compress(q.astype(np.uint8).tobytes(), 9)
 
 
 def _planes(u16: np.ndarray) -> bytes:
@@ -144,9 +168,11 @@ def _palette(levels: int) -> list[str]:
 
 
 def _packed(shown: list[Shown]) -> list[bytes]:
-    """Each image's data, then its FLIP map where it has one, in that order."""
+    """Each image's data, then its FLIP map and its test where it has them,
+    in that order."""
     return [b for s in shown for b in
-            [pack_half(s.pixels)] + ([] if s.flip is None else [pack_levels(s.flip)])]
+            [pack_half(s.pixels)] + ([] if s.flip is None else [pack_levels(s.flip)])
+            + ([] if s.test is None else [pack_test(s.test.p)])]
 
 
 def viewer_bytes(shown: list[Shown]) -> int:
@@ -185,18 +211,20 @@ def viewer(anchor: str, shown: list[Shown], exposure: float,
         # bytes go with pixels; 0.95: room for what the window's content adds
         y0, x0, side = window(h, w, worst, 0.95 * max_bytes / full)
         cut = lambda a: None if a is None else a[y0:y0 + side, x0:x0 + side]  # noqa: E731
-        shown = [Shown(s.label, s.caption, cut(s.pixels), cut(s.flip)) for s in shown]
+        shown = [Shown(s.label, s.caption, cut(s.pixels), cut(s.flip), s.test) for s in shown]
         origin, h, w = (x0, y0), side, side
         if worst:
             worst = (worst[0] - y0, worst[1] - x0, worst[2])
     spec = {"w": w, "h": h, "ev": exposure, "eps": metrics.EPSILON, "worst": worst,
-            "origin": origin,
+            "origin": origin, "film": [whole[0].pixels.shape[1], whole[0].pixels.shape[0]],
             "errorScale": list(error_scale), "errorPalette": _palette(ERROR_LEVELS),
             "flipPalette": _palette(FLIP_LEVELS),
             "images": [{"label": s.label, "caption": s.caption} for s in shown]}
     blobs = "".join(map(_blob, _packed(shown)))
     for im, s in zip(spec["images"], shown):
         im["flip"] = s.flip is not None
+        im["test"] = None if s.test is None else {
+            "w": s.test.p.shape[1], "h": s.test.p.shape[0], "alpha": s.test.alpha_pixel}
     buttons = "".join(
         f'<button type=button data-i="{i}" title="key {(i + 1) % 10 if i < 10 else ""}">'
         f'<kbd>{(i + 1) % 10 if i < 10 else ""}</kbd> {html.escape(s.label)}</button>'
@@ -299,9 +327,20 @@ SCRIPT = r"""
     const ctx = canvas.getContext("2d"), pixels = ctx.createImageData(spec.w, spec.h);
     const blobs = [...root.querySelectorAll(".vbin")];
     let b = 0;
-    const parts = spec.images.map(im => [blobs[b++], im.flip ? blobs[b++] : null]);
+    const parts = spec.images.map(im => [blobs[b++], im.flip ? blobs[b++] : null, im.test ? blobs[b++] : null]);
     const images = await Promise.all(parts.map(([d]) => halves(d, n)));
     const flips = await Promise.all(parts.map(([, f]) => f ? inflate(f) : null));
+    const tests = await Promise.all(parts.map(([, , t]) => t ? inflate(t) : null));
+    // The test of the statistics pixel under a film pixel: "✓ p=…" or "✗ p=…".
+    const testAt = (k, x, y) => {
+      const t = spec.images[k].test;
+      if (!t) return "—";
+      const sx = Math.floor((x + spec.origin[0]) * t.w / spec.film[0]), sy = Math.floor((y + spec.origin[1]) * t.h / spec.film[1]);
+      const q = tests[k][sy * t.w + sx];
+      if (q === 255) return "not tested";
+      const p = 10 ** (-q / 10);
+      return `${p < t.alpha ? "✗ rejected" : "✓"} p≈${p.toExponential(1)} at (${sx}, ${sy})`;
+    };
     const errPal = spec.errorPalette.map(hex), flipPal = spec.flipPalette.map(hex);
     const [vmin, vmax] = spec.errorScale, ref = images[0];
     const state = { i: 0, mode: "image", ev: spec.ev, zoom: 1, x: 0, y: 0, hover: null };
@@ -343,12 +382,12 @@ SCRIPT = r"""
       const t = root.querySelector(".vpix"), h = state.hover;
       if (!h) { t.innerHTML = "<tr><td>point at a pixel to read every image's value there</td></tr>"; return; }
       const p = h.y * spec.w + h.x;
-      let rows = `<tr><th colspan=5>pixel x=${h.x + spec.origin[0]}, y=${h.y + spec.origin[1]}</th></tr><tr><th></th><th>R</th><th>G</th><th>B</th><th>rel. error · FLIP</th></tr>`;
+      let rows = `<tr><th colspan=6>pixel x=${h.x + spec.origin[0]}, y=${h.y + spec.origin[1]}</th></tr><tr><th></th><th>R</th><th>G</th><th>B</th><th>rel. error · FLIP</th><th>unbiased? (statistics pixel)</th></tr>`;
       images.forEach((im, k) => {
         const f = flips[k] ? `${(flips[k][p] / flipPal.length).toFixed(2)}–${((flips[k][p] + 1) / flipPal.length).toFixed(2)}` : "—";
         rows += `<tr class="${k === state.i ? "on" : ""}" data-k="${k}"><td>${spec.images[k].label}</td>` +
           [0, 1, 2].map(c => `<td class=v>${fmt(im[3 * p + c])}</td>`).join("") +
-          `<td>${k ? rel(im, p).toPrecision(3) : "—"} · ${f}</td></tr>`;
+          `<td>${k ? rel(im, p).toPrecision(3) : "—"} · ${f}</td><td>${testAt(k, h.x, h.y)}</td></tr>`;
       });
       t.innerHTML = rows;
     }
@@ -399,7 +438,7 @@ SCRIPT = r"""
       place(); e.preventDefault();
     }, { passive: false });
     // For tests and the curious: this viewer's decoded data and state.
-    root.viewer = { images, flips, state, show, draw, spec };
+    root.viewer = { images, flips, tests, testAt, state, show, draw, spec };
     fit(); draw();
     root.dataset.ready = "1";
   }

@@ -243,7 +243,9 @@ def settle(ctx) -> None:
 
 def save_images(ctx) -> None:
     """images/<scene>/: the reference and its variance; per estimator one
-    render and the K-render mean at the top spp."""
+    render and the K-render mean at the top spp, the mean with the pooled
+    test's smallest p per pixel over channels (layer ``p``; NaN: not tested)
+    and its Šidák level (``alpha_pixel``), which the report's viewer shows."""
     d, ref = ctx.images_dir, ctx.reference
     files.write_exr(f"{d}/reference.exr", ref.mean.astype(np.float32),
                     {"spp": ref.spp, "passes": ref.passes})
@@ -256,8 +258,13 @@ def save_images(ctx) -> None:
         files.write_exr(f"{d}/{name}_spp{top}.exr", images[0],
                         {"integrator": name, "spp": top,
                          "seed": seeds.stream("ladder", rung).seed(0)})
+        found = ctx.evidence.get(name)
+        test = None if found is None else found.comparison
         files.write_exr(f"{d}/{name}_spp{top}_mean.exr", images.mean(axis=0),
-                        {"integrator": name, "spp": top, "renders": len(images)})
+                        {"integrator": name, "spp": top, "renders": len(images)}
+                        | ({} if test is None else {"alpha_pixel": float(test.alpha_pixel)}),
+                        None if test is None else
+                        {"p": np.asarray(test.pixel_p, np.float32)[..., None]})
 
 
 def scene_result(ctx) -> SceneResult:
