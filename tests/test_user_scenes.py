@@ -134,7 +134,15 @@ def write_city_scene(root) -> str:
     return path
 
 
-def test_a_map_named_by_file_in_an_include_is_given_as_envmap(llvm, tmp_path):
+#: The included sky's map as another $-parameter, its default in the
+#: included file (the values of the file that holds the emitter name it).
+SKY_PARAMETER = SKY_FRAGMENT.replace('<emitter', '<default name="sky" value="textures/city.exr"/>'
+                                     '<emitter').replace('value="textures/city.exr"/></emitter>',
+                                                         'value="$sky"/></emitter>')
+
+
+@pytest.mark.parametrize("fragment", [SKY_FRAGMENT, SKY_PARAMETER], ids=["file", "parameter"])
+def test_a_map_named_in_an_include_is_given_as_envmap(llvm, tmp_path, fragment):
     """The plan finds the file the included emitter names (through the
     scene's <path>), gives it as $envmap and says so; the loaded XML's
     emitter then takes $envmap, so another map replaces it (the sunless
@@ -142,16 +150,17 @@ def test_a_map_named_by_file_in_an_include_is_given_as_envmap(llvm, tmp_path):
     from mcillum.envmaps import sun
     from mcillum.validation.run import references
     path = write_city_scene(tmp_path)
+    (tmp_path / "fragments" / "sky.xml").write_text(fragment)
     city = str(tmp_path / "common" / "textures" / "city.exr")
     found = scene_files.environment_map(path)
-    assert (found.where, found.written, found.file, found.clash) == (
-        str(tmp_path / "fragments" / "sky.xml"), "textures/city.exr", city, False)
+    assert (found.where, found.file, found.clash) == (
+        str(tmp_path / "fragments" / "sky.xml"), city, False)
     run, notes = user_scenes.scene_run(profiles.QUICK, path)
     assert run.defines["envmap"] == city
     assert any("city.exr" in n and "$envmap" in n for n in notes), notes
     other = renders.resolve_defines(path, envmap="gradient")
     text, _ = scene_files.with_film(path, (8, 8), other)
-    assert 'value="$envmap"' in text and "textures/city.exr" not in text
+    assert 'name="filename" value="$envmap"' in text
     real = renders.resolve_defines(path, **run.defines)
     suns = [sun.split(renders.environment_texels(renders.load_resolved(path, d, film=(8, 8))))
             [1]["texels"] for d in (real, other)]
