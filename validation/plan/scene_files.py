@@ -226,8 +226,9 @@ class EnvironmentMap(NamedTuple):
     where: str              # the XML file that holds the emitter
     written: str            # its filename as written ("" where it names none)
     file: str | None        # the map it loads (absolute); None where not found
-    #: The scene uses ``$envmap`` elsewhere than as this emitter's filename:
-    #: it cannot be given the map as ``$envmap`` without changing that use.
+    #: The scene declares ``$envmap`` (a ``<default>``) or uses it elsewhere
+    #: than as this emitter's filename, while the emitter names another
+    #: file: the map cannot be given as ``$envmap`` without changing that use.
     clash: bool = False
 
 
