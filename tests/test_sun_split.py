@@ -88,11 +88,11 @@ def test_a_scene_on_a_sun_map_is_decided_by_its_split(llvm, tmp_path):
     assert est["path"].sun is None and unbiased["path"].outcome == "pass"
 
 
-def test_a_map_named_in_its_emitter_gets_a_note_not_a_split(llvm):
-    """A user's scene whose envmap emitter names its file cannot be split:
-    where its map has a sun and an estimator is left open, a note of the
-    scene says so and how to give the map as $envmap; a map without a sun,
-    or every estimator decided, adds none."""
+def test_a_map_that_cannot_be_given_as_envmap_gets_a_note_not_a_split(llvm, tmp_path):
+    """A user's scene whose map mcillum cannot give as $envmap (it declares
+    $envmap for something else) cannot be split: where its map has a sun
+    and an estimator is left open, a note of the scene says so and why; a
+    map without a sun, or every estimator decided, adds none."""
     from types import SimpleNamespace
 
     import mitsuba as mi
@@ -103,18 +103,23 @@ def test_a_map_named_in_its_emitter_gets_a_note_not_a_split(llvm):
 
     def ctx(map_name: str, outcome: str):
         path = catalog.resolve(map_name)[0]
+        file = tmp_path / f"{map_name}.xml"
+        file.write_text(f'<scene version="3.0.0"><default name="envmap" value="other.exr"/>'
+                        f'<emitter type="envmap"><string name="filename" value="{path}"/>'
+                        "</emitter></scene>")
         scene = mi.load_dict({"type": "scene", "sky": {"type": "envmap", "filename": path}})
         found = Evidence(comparison=object(), events=None, samples=0)
         found.settled = Settled(decision=Decision(outcome=outcome, reason=""), looks=1,
                                 samples=0, budget=0)
         return SimpleNamespace(is_case=False, resolved={}, scene=scene, scene_notes=[],
                                estimators=["cosine_hemisphere", "path"],
-                               evidence={"cosine_hemisphere": found})
+                               evidence={"cosine_hemisphere": found}, defines={},
+                               info=SimpleNamespace(path=str(file), bundled=False))
 
     open_sun = ctx("sun_sky", "inconclusive")
     sun_split.note_unsplit_sun(open_sun)
     (note,) = open_sun.scene_notes
-    assert "$envmap" in note and "cosine_hemisphere" in note and "sr" in note
+    assert "rename that parameter" in note and "cosine_hemisphere" in note and "sr" in note
     for quiet in (ctx("sun_sky", "pass"), ctx("courtyard", "inconclusive")):
         sun_split.note_unsplit_sun(quiet)
         assert quiet.scene_notes == []

@@ -29,7 +29,7 @@ from mcillum.validation.plan import profiles, scene_files, scenes, user_scenes
 from mcillum.validation.run import renders
 
 from test_stock_scenes import POINT, SKY, write_scene
-from user_code import MY_INTEGRATOR, MY_QUADRATURE
+from user_code import MY_BSDF_DIRECT, MY_INTEGRATOR, MY_QUADRATURE
 
 DIRECT = '<integer name="max_depth" value="2"/>'
 
@@ -110,6 +110,85 @@ def test_the_plan_keeps_the_scene_settings_unless_the_user_overrides(tmp_path):
     assert (run.max_depth, run.film, run.display.res) == (3, (10, 10), 100)
     assert any("given by the user: max_depth 3" in n for n in notes)
     assert scenes.info(path).contains is None and not scenes.info(path).bundled
+
+
+# ------------------------------ A map named by file -------------------------------
+
+#: The sky of a stock-style scene: an included fragment whose envmap emitter
+#: names its map as a file (relative: found through the scene's <path>).
+SKY_FRAGMENT = ('<scene version="3.0.0"><emitter type="envmap">'
+                '<string name="filename" value="textures/city.exr"/></emitter></scene>')
+
+
+def write_city_scene(root) -> str:
+    """A user's glossy scene (test_stock_scenes.py) lit by the city probe, a
+    small sun, named as a literal file in an ``<include>``d fragment, with
+    the direct-light settings. Returns the scene file's path."""
+    import shutil
+
+    from mcillum.envmaps import probes
+
+    path = write_scene(root, lights='<include filename="fragments/sky.xml"/>', params=DIRECT)
+    shutil.copy(probes.path("city"), root / "common" / "textures" / "city.exr")
+    (root / "fragments" / "sky.xml").write_text(SKY_FRAGMENT)
+    return path
+
+
+#: The included sky's map as another $-parameter, its default in the
+#: included file (the values of the file that holds the emitter name it).
+SKY_PARAMETER = SKY_FRAGMENT.replace('<emitter', '<default name="sky" value="textures/city.exr"/>'
+                                     '<emitter').replace('value="textures/city.exr"/></emitter>',
+                                                         'value="$sky"/></emitter>')
+
+
+@pytest.mark.parametrize("fragment", [SKY_FRAGMENT, SKY_PARAMETER], ids=["file", "parameter"])
+def test_a_map_named_in_an_include_is_given_as_envmap(llvm, tmp_path, fragment):
+    """The plan finds the file the included emitter names (through the
+    scene's <path>), gives it as $envmap and says so; the loaded XML's
+    emitter then takes $envmap, so another map replaces it (the sunless
+    map of the sun split), and that map keys its own reference."""
+    from mcillum.envmaps import sun
+    from mcillum.validation.run import references
+    path = write_city_scene(tmp_path)
+    (tmp_path / "fragments" / "sky.xml").write_text(fragment)
+    city = str(tmp_path / "common" / "textures" / "city.exr")
+    found = scene_files.environment_map(path)
+    assert (found.where, found.file, found.clash) == (
+        str(tmp_path / "fragments" / "sky.xml"), city, False)
+    run, notes = user_scenes.scene_run(profiles.QUICK, path)
+    assert run.defines["envmap"] == city
+    assert any("city.exr" in n and "$envmap" in n for n in notes), notes
+    other = renders.resolve_defines(path, envmap="gradient")
+    text, _ = scene_files.with_film(path, (8, 8), other)
+    assert 'name="filename" value="$envmap"' in text
+    real = renders.resolve_defines(path, **run.defines)
+    suns = [sun.split(renders.environment_texels(renders.load_resolved(path, d, film=(8, 8))))
+            [1]["texels"] for d in (real, other)]
+    assert suns[0] > 0 and suns[1] == 0           # city's sun; the gradient has none
+    keys = {references.cache_key(path, d, {"max_depth": 2}, mi.variant(), film=(8, 8))
+            for d in (real, other)}
+    assert len(keys) == 2
+
+
+def test_a_scene_that_uses_envmap_itself_keeps_its_map_and_names_why(tmp_path):
+    """A scene that declares $envmap (here for nothing the emitter uses)
+    cannot be given its map as $envmap: nothing is rewritten, and the
+    sentence the sun split's note gives says why and what to do. A scene
+    that gives its map as $envmap with a default is left to the renders."""
+    path = write_city_scene(tmp_path)
+    text = open(path).read().replace('<default name="res"', '<default name="envmap" '
+                                     'value="unused.exr"/>\n    <default name="res"')
+    open(path, "w").write(text)
+    envmap, why = user_scenes.map_parameter(path)
+    assert envmap is None and "rename that parameter" in why
+    assert "envmap" not in user_scenes.scene_run(profiles.QUICK, path)[0].defines
+    xml, _ = scene_files.with_film(path, (8, 8), {"envmap": "/elsewhere.exr"})
+    assert "textures/city.exr" in xml
+    (tmp_path / "fragments" / "sky.xml").write_text(
+        SKY_FRAGMENT.replace("textures/city.exr", "$envmap"))
+    text = text.replace('value="unused.exr"', 'value="common/textures/city.exr"')
+    open(path, "w").write(text)
+    assert user_scenes.map_parameter(path) == (None, "")
 
 
 # ---------------------------------- Plugins ---------------------------------------
@@ -445,3 +524,33 @@ def test_a_bundled_scene_with_a_black_reference_is_an_internal_error():
         common.require_signal(ctx)
     ref.mean[2, 3, 1] = 1e-6               # one dim pixel channel is signal
     common.require_signal(ctx)
+
+
+def test_a_sun_named_by_file_in_an_include_is_split(llvm, tmp_path, capsys):
+    """A user's direct light from BSDF samples only (a file outside the
+    repository) on their glossy scene under the city probe, the map named
+    as a file in an included fragment. Before mcillum gave such a map as
+    $envmap, its sun was not split and the tail excused the twin whose
+    weights are 5 % low (inconclusive here, exit 0). Now the twin fails
+    without the sun, the correct one does not fail, and the notes say the
+    map was given."""
+    plugin = tmp_path / "code" / "my_bsdf.py"
+    plugin.parent.mkdir()
+    plugin.write_text(MY_BSDF_DIRECT)
+    (tmp_path / "scene").mkdir()
+    scene = write_city_scene(tmp_path / "scene")
+    out = tmp_path / "out"
+    code, said = run_cli(capsys, scene, "--plugin", str(plugin), "--out", str(out),
+                         "--estimators", "my_bsdf_direct", "my_bsdf_direct_low")
+    data = json.loads((out / "results.json").read_text())
+    (result,) = data["scenes"]
+    unbiased = {c["id"].split("/")[1]: c for c in data["checks"]
+                if c["id"].endswith("/unbiased")}
+    assert unbiased["my_bsdf_direct_low"]["outcome"] == "fail", unbiased
+    assert unbiased["my_bsdf_direct"]["outcome"] != "fail", unbiased
+    split = {e["name"]: e["unbiasedness"].get("sun") for e in result["estimators"]}
+    assert split["my_bsdf_direct_low"] is not None, split
+    assert split["my_bsdf_direct_low"]["sunless_outcome"] == "fail", split
+    notes = " | ".join(result["notes"])
+    assert "city.exr" in notes and "$envmap" in notes, notes
+    assert code == 1, said.out + said.err

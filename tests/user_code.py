@@ -111,3 +111,36 @@ mi.register_integrator("my_bayes_low", lambda props: MyBayesLow(props))
 mi.register_integrator("my_direct_declared_biased",
                        lambda props: MyDirectDeclaredBiased(props))
 '''
+
+#: A user's direct-light integrator that samples the BSDF only (no emitter
+#: samples): heavy-tailed under a small sun, which only a BSDF sample that
+#: escapes towards it finds. ``my_bsdf_direct_low`` is its twin whose
+#: weights are 5 % low: under a sun the tail can excuse its darker mean.
+MY_BSDF_DIRECT = '''
+import mitsuba as mi
+
+
+class MyBsdfDirect(mi.SamplingIntegrator):
+    display_name = "my BSDF-sampled direct light"
+    weight = 1.0
+
+    def sample(self, scene, sampler, ray, medium=None, active=True):
+        si = scene.ray_intersect(ray, active)
+        L = si.emitter(scene, active).eval(si, active)        # light seen directly
+        hit = active & si.is_valid()
+        bs, f = si.bsdf(ray).sample(mi.BSDFContext(), si, sampler.next_1d(hit),
+                                    sampler.next_2d(hit), hit)
+        hit &= bs.pdf > 0
+        # (a miss returns the environment emitter: the sun is found only here)
+        lit = scene.ray_intersect(si.spawn_ray(si.to_world(bs.wo)), hit)
+        Le = lit.emitter(scene, hit).eval(lit, hit)
+        return L + self.weight * f * Le, si.is_valid(), []
+
+
+class MyBsdfDirectLow(MyBsdfDirect):
+    weight = 0.95
+
+
+mi.register_integrator("my_bsdf_direct", lambda props: MyBsdfDirect(props))
+mi.register_integrator("my_bsdf_direct_low", lambda props: MyBsdfDirectLow(props))
+'''

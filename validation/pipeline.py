@@ -11,7 +11,7 @@ below), then the checks decide (:mod:`.checks`):
                        against N, calibration) → learning (estimators that
                        learn their pdf, where the plan asks: error against
                        training passes) → release the scene → images → on
-                       a map with a sun ($envmap), for the estimators it
+                       a map with a sun, for the estimators it
                        left inconclusive, the sun split as a failure case's
                        below, at the ladder's top rung; checks; then the
                        speed-and-images stage at the display resolution

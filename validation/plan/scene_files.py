@@ -13,7 +13,10 @@ so what it needs from the file is:
 * :func:`with_film`: the scene's XML with another film size (the small-image
   statistics run at a reduced film: plan/profiles.py, ``UserScenes``), its
   includes inlined so that a sensor in an included file is reached too, and
-  the folders its relative paths resolve from.
+  the folders its relative paths resolve from;
+* :func:`environment_map`: the map file its ``envmap`` emitter loads, which
+  :func:`with_film` hands to Mitsuba as ``$envmap`` where a define gives
+  one (plan/user_scenes.py: the sun split needs the map as a parameter).
 
 Nothing here loads the scene; run/renders.py does.
 """
@@ -21,6 +24,7 @@ Nothing here loads the scene; run/renders.py does.
 from __future__ import annotations
 
 import os
+import re
 import xml.etree.ElementTree as ET
 from typing import NamedTuple
 
@@ -49,7 +53,16 @@ def inlined(path: str, defines: dict | None = None) -> tuple[ET.Element, list[st
     ``$``-parameters in include names are replaced (defaults of each file,
     then ``defines``). Raises :class:`SceneFileError` for a file that is
     not XML or an include that is not found."""
+    root, folders, _ = _inline(path, defines)
+    return root, folders
+
+
+def _inline(path: str, defines: dict | None = None):
+    """:func:`inlined`, and each ``envmap`` emitter of the inlined root with
+    the file that holds it and that file's ``$``-parameters (its name is
+    resolved as that file's values say)."""
     folders: list[str] = []
+    maps: list[tuple[ET.Element, str, dict]] = []
 
     def visit(file: str, params: dict, seen: tuple) -> ET.Element:
         file = os.path.abspath(file)
@@ -60,6 +73,9 @@ def inlined(path: str, defines: dict | None = None) -> tuple[ET.Element, list[st
         if here not in folders:
             folders.append(here)
         local = scenes.parameters(file, params)
+        # (before the includes below are inlined: each file records its own)
+        maps.extend((e, file, local) for e in root.iter("emitter")
+                    if scenes.substitute(e.get("type", ""), local) == "envmap")
         for parent in list(root.iter()):
             for child in list(parent):
                 if child.tag == "path":
@@ -84,7 +100,7 @@ def inlined(path: str, defines: dict | None = None) -> tuple[ET.Element, list[st
         return root
 
     root = visit(path, {k: str(v) for k, v in (defines or {}).items()}, ())
-    return root, folders
+    return root, folders, maps
 
 
 # ------------------------------ Integrator settings ------------------------------
@@ -172,9 +188,13 @@ def with_film(path: str, film: tuple[int, int] | Film, defines: dict | None = No
               ) -> tuple[str, list[str]]:
     """(the scene's XML, includes inlined, with the first sensor's film at
     ``film`` = (width, height), and its crop window a :class:`Film`'s or
-    none; the folders its relative paths resolve from). Raises
-    :class:`SceneFileError` for a scene without a ``<sensor>``."""
-    root, folders = inlined(path, defines)
+    none; the folders its relative paths resolve from). Where ``defines``
+    give ``envmap``, the ``envmap`` emitter loads ``$envmap`` whatever file
+    it names (:func:`_map_as_parameter`). Raises :class:`SceneFileError`
+    for a scene without a ``<sensor>``."""
+    root, folders, maps = _inline(path, defines)
+    if (defines or {}).get("envmap") is not None and maps:
+        _map_as_parameter(root, maps[0][0])
     sensor = root.find("sensor")
     if sensor is None:
         raise SceneFileError(f"scene {path} has no <sensor> (nor an included file): the "
@@ -193,3 +213,61 @@ def with_film(path: str, film: tuple[int, int] | Film, defines: dict | None = No
     for name, value in sizes.items():
         ET.SubElement(film_element, "integer", {"name": name, "value": str(int(value))})
     return ET.tostring(root, encoding="unicode"), folders
+
+
+# ------------------------------- Environment map ----------------------------------
+
+_USES_ENVMAP = re.compile(r"\$envmap\b")
+
+
+class EnvironmentMap(NamedTuple):
+    """The scene's ``envmap`` emitter as its files give it."""
+
+    where: str              # the XML file that holds the emitter
+    written: str            # its filename as written ("" where it names none)
+    file: str | None        # the map it loads (absolute); None where not found
+    #: The scene declares ``$envmap`` (a ``<default>``) or uses it elsewhere
+    #: than as this emitter's filename, while the emitter names another
+    #: file: the map cannot be given as ``$envmap`` without changing that use.
+    clash: bool = False
+
+
+def environment_map(path: str, defines: dict | None = None) -> EnvironmentMap | None:
+    """The scene's (first) ``envmap`` emitter: where it is, the filename it
+    gives and the file that name finds (``$``-parameters replaced as its own
+    file's values say; a relative name looked up as the scene is loaded:
+    the scene's folder, each included file's, each ``<path>``'s). None for
+    a scene without one. Raises :class:`SceneFileError` as :func:`inlined`."""
+    root, folders, maps = _inline(path, defines)
+    if not maps:
+        return None
+    emitter, where, local = maps[0]
+    element = _filename_element(emitter)
+    written = element.get("value", "") if element is not None else ""
+    name = scenes.substitute(written, local)
+    return EnvironmentMap(where, written, scenes.find(name, folders) if name else None,
+                          written != "$envmap" and _has_envmap(root, element))
+
+
+def _filename_element(emitter: ET.Element) -> ET.Element | None:
+    return next((c for c in emitter if c.get("name") == "filename"), None)
+
+
+def _has_envmap(root: ET.Element, skip: ET.Element | None = None) -> bool:
+    """Does the inlined scene declare ``$envmap`` (a ``<default>``) or use
+    it anywhere but in ``skip``?"""
+    return any(e.tag == "default" and e.get("name") == "envmap" for e in root.iter()) \
+        or any(_USES_ENVMAP.search(v) for e in root.iter() if e is not skip
+               for v in e.attrib.values())
+
+
+def _map_as_parameter(root: ET.Element, emitter: ET.Element) -> None:
+    """The ``envmap`` emitter's filename made ``$envmap``, so that the map a
+    define gives (the sunless map, the widened sun: stages/sun_split.py)
+    replaces the one it names. Left as it is where the scene declares or
+    uses ``$envmap`` itself (the define then goes where the scene says) or
+    the emitter names no file."""
+    element = _filename_element(emitter)
+    if element is None or _has_envmap(root):
+        return
+    element.set("value", "$envmap")

@@ -160,7 +160,10 @@ def referenced_files(scene_path: str, defines: dict) -> list[str]:
     substituting ``$``-parameters (defaults from the file, then ``defines``).
     A relative reference is found as Mitsuba finds it: beside the file that
     makes it, else in a folder a ``<path>`` added (stock scenes keep their
-    meshes and textures in a shared folder found that way)."""
+    meshes and textures in a shared folder found that way). The map an
+    ``envmap`` define names is one too, where the scene names another file
+    in its place (a user's scene that mcillum gives its map as ``$envmap``,
+    plan/scene_files.py: the sunless map must key its own reference)."""
     seen: list[str] = []
 
     def visit(path: str, params: dict, folders: list[str]):
@@ -182,4 +185,8 @@ def referenced_files(scene_path: str, defines: dict) -> list[str]:
                 visit(target, local, folders)
 
     visit(scene_path, {k: str(v) for k, v in defines.items()}, [])
+    given = defines.get("envmap")
+    if given is not None and os.path.isfile(str(given)) \
+            and os.path.abspath(str(given)) not in seen:
+        seen.append(os.path.abspath(str(given)))
     return seen

@@ -5,7 +5,11 @@ a scene is compared; this module applies it to one file: the statistics at
 the reduced film (the scene's aspect, its longest side ``res``), the
 equal-time images at the scene's own film up to the display cap, and the
 integrator settings that define the image, read off the scene (through
-``moment``/``aov`` wrappers) unless the user overrides them.
+``moment``/``aov`` wrappers) unless the user overrides them. Its
+environment map, however the scene names it (a file, a ``$``-parameter, in
+an included file), is given to the renders as ``$envmap``
+(:func:`map_parameter`), so that the sun split (stages/sun_split.py) can
+take a sun off it and widen it.
 """
 
 from __future__ import annotations
@@ -13,9 +17,10 @@ from __future__ import annotations
 import dataclasses
 import os
 
+from mcillum import envmaps
 from mcillum.errors import UsageError
 
-from . import scene_files
+from . import scene_files, scenes
 from .plans import Profile, SceneRun
 
 
@@ -36,8 +41,13 @@ def scene_run(profile: Profile, path: str, *, defines: dict | None = None,
     try:
         found, wrappers = scene_files.integrator_settings(path, defines)
         own = scene_files.film_size(path, defines)
+        envmap, said = map_parameter(path, defines)
     except scene_files.SceneFileError as err:
         raise UsageError(str(err)) from None
+    # (why a map was not given matters only where it has a sun: sun_split's note)
+    told = [said] if said and (envmap is not None or "envmap" in defines) else []
+    if envmap is not None:
+        defines["envmap"] = envmap
     given = {k: v for k, v in (settings or {}).items() if v is not None}
     chosen = {**found, **given}
     longest = res or plan.res
@@ -50,7 +60,46 @@ def scene_run(profile: Profile, path: str, *, defines: dict | None = None,
                    max_depth=chosen.pop("max_depth", -1), defines=defines, display=display,
                    label=label or os.path.splitext(os.path.basename(path))[0],
                    own_film=own, settings=chosen, learning=plan.learning)
-    return run, _notes(run, found, given, wrappers)
+    return run, _notes(run, found, given, wrappers) + told
+
+
+def map_parameter(path: str, defines: dict | None = None) -> tuple[str | None, str]:
+    """(the map file to give scene ``path`` as ``$envmap``, or None; a
+    sentence for the results' notes: what is done, or why not — "" where
+    the scene has no ``envmap`` emitter or gives its map as ``$envmap``
+    with a default, which the renders resolve as a bundled scene's).
+    Where a define gives ``envmap`` (``-D``), that map is used, and the
+    sentence says which map it replaces. The map given is checked as
+    mcillum's own are (envmaps/safety.py; a map it refuses is left to the
+    scene). Raises :class:`~.scene_files.SceneFileError` for a scene file
+    that cannot be read."""
+    defines = defines or {}
+    found = scene_files.environment_map(path, defines)
+    if found is None:
+        return None, ""
+    named = f"the envmap emitter of {found.where}"
+    if found.written == "$envmap" and ("envmap" in defines
+                                       or "envmap" in scenes.defaults(path)):
+        return None, ""
+    if found.clash:
+        return None, (f"{named} names {found.written!r} while the scene declares or uses "
+                      "$envmap for something else: rename that parameter to have mcillum "
+                      "give the map as $envmap")
+    if "envmap" in defines:
+        return None, f"-D envmap={defines['envmap']} replaces the map {named} names"
+    if not found.written:
+        return None, (f"{named} gives no filename (its map comes another way): mcillum "
+                      "gives only a map file as $envmap")
+    if found.file is None:
+        return None, (f"{named} names {found.written!r}, which mcillum did not find beside "
+                      "the scene, its includes or its <path>s: give the file's path")
+    try:
+        envmaps.resolve(found.file)
+    except envmaps.EnvmapError as err:
+        return None, f"mcillum's map check refuses the map of {named}: {err}"
+    return found.file, (f"the map {found.file} ({named}) is given to the renders as "
+                        "$envmap, checked as mcillum's own maps are (negative texels set to "
+                        "0), so that a sun on it can be taken off and widened (the sun split)")
 
 
 def _notes(run: SceneRun, found: dict, given: dict, wrappers: list[str]) -> list[str]:

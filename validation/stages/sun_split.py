@@ -15,7 +15,9 @@ map). Those the real sun left inconclusive, that passed without it and that
 do not sample the emitters are tested once more on the map with its sun
 **widened** to a disc the samples hit: the **widened twin**, run the same
 way. Failure cases split the sun of their heavy-tail maps; scene
-comparisons that of any map given as ``$envmap``. The verdicts are the
+comparisons that of their map, which the renders get as ``$envmap``
+(a user's scene that names its map by file, or in an included file,
+too: plan/user_scenes.py, ``map_parameter``). The verdicts are the
 checks' (checks/cases.py, checks/scene.py).
 """
 
@@ -28,6 +30,7 @@ from mcillum.integrators import registry
 
 from ..checks import evidence
 from ..checks import sun as sun_rules
+from ..plan import scene_files, user_scenes
 from ..results import BatchTest, SunSplit
 from ..run import references, renders
 from ..stats import tails
@@ -152,9 +155,9 @@ def _samples(ctx, name: str) -> int:
 # ------------------------------ The sunless twin --------------------------------
 
 def find_sun(ctx) -> None:
-    """``ctx.sun``, ``ctx.sunless_map``: the sun of the map given as
-    ``$envmap`` (envmaps/sun.py: its facts) and the map without it; None
-    where the scene takes no map by that name or the map has no sun."""
+    """``ctx.sun``, ``ctx.sunless_map``: the sun of the map the renders get
+    as ``$envmap`` (envmaps/sun.py: its facts) and the map without it; None
+    where they get no map by that name or the map has no sun."""
     if ctx.sun is not None or "envmap" not in (ctx.resolved or {}):
         return
     sunless_map, facts = sun.without_sun(ctx.resolved["envmap"])
@@ -163,11 +166,13 @@ def find_sun(ctx) -> None:
 
 
 def note_unsplit_sun(ctx) -> None:
-    """A scene comparison whose map is named in its emitter rather than
-    given as ``$envmap`` cannot be split: where that map has a sun and an
-    estimator's ``unbiased`` did not pass, a note of the scene says so and
-    how to have it split. Reads the loaded scene's environment emitter (its
-    texels, as Mitsuba holds them), so it runs before the scene is let go."""
+    """A scene comparison whose renders do not get the map as ``$envmap``
+    cannot be split (a user's scene where plan/user_scenes.py could not give
+    it: ``map_parameter`` says why): where that map has a sun and an
+    estimator's ``unbiased`` did not pass, a note of the scene says so, why,
+    and what the split would have tested. Reads the loaded scene's
+    environment emitter (its texels, as Mitsuba holds them), so it runs
+    before the scene is let go."""
     if ctx.is_case or "envmap" in (ctx.resolved or {}) or ctx.scene is None:
         return
     open_ = _not_passed(ctx)
@@ -179,9 +184,21 @@ def note_unsplit_sun(ctx) -> None:
         ctx.scene_notes.append(
             f"its map has a sun ({facts['solid_angle']:.2g} sr, "
             f"{100 * facts['power_share']:.0f} % of the map's power) that the sun split "
-            "cannot take off, as the emitter names its file: give the map as $envmap "
-            "(<default name=\"envmap\" value=\"…\"/> and filename=\"$envmap\") to have "
-            f"{', '.join(open_)} tested without it and with it widened")
+            f"cannot take off: {_why_unsplit(ctx)}; so {', '.join(open_)} "
+            f"{'was' if len(open_) == 1 else 'were'} not tested without it and with it "
+            "widened")
+
+
+def _why_unsplit(ctx) -> str:
+    """Why the renders of ``ctx``'s scene do not get its map as ``$envmap``."""
+    fallback = ("mcillum found no envmap emitter naming a map file in the scene's XML: "
+                "name the map in its filename")
+    if ctx.info.bundled:
+        return "the scene names its map's file: give it as $envmap"
+    try:
+        return user_scenes.map_parameter(ctx.info.path, ctx.defines)[1] or fallback
+    except scene_files.SceneFileError:
+        return fallback
 
 
 def sunless_twin(ctx) -> None:
