@@ -191,10 +191,10 @@ def test_an_upward_import_is_named():
 
 def test_an_upward_import_inside_a_function_is_named():
     sources = package_sources()
-    broken = _with(sources, "mcillum.integrators.registry",
+    broken = _with(sources, "mcillum.integrators.core.registry",
                    "def f():\n    from mcillum.validation import pipeline")
     found = violations(broken, table())
-    assert any("mcillum.integrators.registry imports mcillum.validation.pipeline" in f
+    assert any("mcillum.integrators.core.registry imports mcillum.validation.pipeline" in f
                for f in found), found
 
 

@@ -187,7 +187,7 @@ def test_install_adds_one_package_and_its_scenes(tmp_path):
     # no .pth there is read, so this checkout's editable mcillum stays out)
     result = subprocess.run([python, "-c", textwrap.dedent("""
         import mcillum, mitsuba as mi
-        from mcillum.integrators import registry
+        from mcillum.integrators.core import registry
         from mcillum.validation.plan import scenes
         mi.set_variant("scalar_rgb")
         print(mcillum.__file__)
