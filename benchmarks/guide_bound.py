@@ -72,7 +72,7 @@ def patch_radiance(scene, si, w):
 def oracle_pmfs(scene, res: int, R: int, jitter: int, chunk: int = 64) -> np.ndarray:
     """Per pixel, the integrand's mean over each of the R² cells (pixels, R²)."""
     import mitsuba as mi
-    from mcillum.integrators import guided_path as gp
+    from mcillum.integrators.guiding import guided_path as gp
     cells = R * R
     per = cells * jitter * jitter
     c = np.repeat(np.arange(cells), jitter * jitter)
@@ -100,7 +100,7 @@ def evaluate(scene, res: int, n: int, R: int, pmf: np.ndarray, alpha: np.ndarray
     guided_path does (None: from the point)."""
     import drjit as dr
     import mitsuba as mi
-    from mcillum.integrators import guided_path as gp
+    from mcillum.integrators.guiding import guided_path as gp
     rng = np.random.default_rng(seed)
     pixels = res * res
     cdf = np.cumsum(pmf, axis=1)
@@ -145,7 +145,7 @@ def main(argv=None) -> None:
                         help="guided_path property, key=value (repeatable)")
     args = parser.parse_args(argv)
     renders.set_variant("llvm_ad_rgb")
-    from mcillum.integrators import guide as guide_mod
+    from mcillum.integrators.guiding import guide as guide_mod
 
     scene = renders.load_scene(scenes.path("sunlit_room"), res=args.res, gap="hole",
                                sun=IRRADIANCE)
@@ -173,7 +173,7 @@ def main(argv=None) -> None:
     row = tables["leaf"][np.array(guide_mod.voxel_of(hits.p, grid))]
     alpha = tables["alpha"][row]
     quantized = tables["pmf"].reshape(-1, g.res * g.res)[row]
-    from mcillum.integrators import guided_path as gp
+    from mcillum.integrators.guiding import guided_path as gp
     at = guide_mod.on_plane(guide_mod.anchor_of(hits.p, grid), hits.p, gp.guide_frame(hits).n)
     centre = np.array(at).T.reshape(pixels, 3)
     anchors = (centre, tables["distance"][row])

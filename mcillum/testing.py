@@ -35,7 +35,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from .errors import UsageError, UserError
-from .integrators import registry
+from .integrators.core import registry
 
 if TYPE_CHECKING:
     from .validation.plan.profiles import Profile

@@ -16,7 +16,7 @@ import pytest
 import mcillum  # noqa: F401  (LLVM set-up before drjit; registers the plugins)
 import mitsuba as mi
 
-from mcillum.integrators import registry
+from mcillum.integrators.core import registry
 from mcillum.validation.run import renders
 
 from twins import has_pdf_pair, plugin_class

@@ -28,7 +28,7 @@ import functools
 import numpy as np
 import pytest
 
-from mcillum.integrators import registry
+from mcillum.integrators.core import registry
 from mcillum.validation.plan import scenes
 from mcillum.validation.run import renders
 from mcillum.validation.stats import statistics

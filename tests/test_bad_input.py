@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from mcillum import files
-from mcillum.integrators import registry
+from mcillum.integrators.core import registry
 from mcillum.validation import cli
 
 from conftest import ROOT, SCENES
@@ -226,7 +226,7 @@ def test_report(tmp, capsys, text, code, phrase):
 STALLED_WRITE = """
 import contextlib, os, sys, time
 from mcillum import files
-from mcillum.integrators import registry
+from mcillum.integrators.core import registry
 from mcillum.validation import cli
 
 suffix, marker = sys.argv[1], sys.argv[2]

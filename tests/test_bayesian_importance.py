@@ -38,7 +38,7 @@ def lone_sphere(res, envmap="constant"):
 
 
 def _module():
-    from mcillum.integrators import bayesian_importance
+    from mcillum.integrators.quadrature import bayesian_importance
     return bayesian_importance
 
 
@@ -248,7 +248,7 @@ def test_the_quadrature_stage_compares_it_with_emitter_sampling(llvm, tmp_path):
     equal-ray pair is against its facts' baseline, emitter_sampling (both
     sample the light), and the point set wins it; the report names the
     baseline per row. fibonacci_hemisphere keeps cosine_hemisphere."""
-    from mcillum.integrators import registry
+    from mcillum.integrators.core import registry
     from mcillum.validation import pipeline
     from mcillum.validation.plan import profiles
     from mcillum.validation.report import scenes as report_scenes

@@ -1,5 +1,5 @@
 """fibonacci_hemisphere and bayesian_hemisphere: N directions per shading
-point (integrators/direction_set.py).
+point (integrators/core/direction_set.py).
 
 Exact cases: under a constant environment a lone diffuse sphere reflects
 ρL at every pixel; both estimators must return it to float precision (every
@@ -31,7 +31,7 @@ import mcillum  # noqa: F401
 import drjit as dr
 import mitsuba as mi
 
-from mcillum.integrators import registry
+from mcillum.integrators.core import registry
 from mcillum.validation.plan import scenes
 
 from mcillum.validation.run import renders, stacks
@@ -82,7 +82,7 @@ def test_bayesian_nodes_of_either_mapping_are_exact_in_a_furnace(llvm, mapping):
     integ = renders.make_integrator("bayesian_hemisphere", {
         "directions": 16, "length_scale": 0.5, "mapping": mapping, "prior_mean": "zero",
         "sets": 1})
-    from mcillum.integrators import gp_quadrature as gq
+    from mcillum.integrators.quadrature import gp_quadrature as gq
     total = gq.weights(16, 0.5, 1e-3, "zero", mapping).weights.sum()
     image = renders.render(scene, integ, 2).image
     np.testing.assert_allclose(image, np.broadcast_to(total * expected, image.shape), rtol=2e-5)
@@ -92,7 +92,7 @@ def test_zero_prior_mean_darkens_by_the_weight_sum(llvm):
     """The zero mean pulls every estimate towards 0 by exactly Σ Q⁻¹z < 1
     (the constant mean removes it); the posterior variance is 0 with the
     constant mean (all samples equal) and positive with the zero mean."""
-    from mcillum.integrators import gp_quadrature as gq
+    from mcillum.integrators.quadrature import gp_quadrature as gq
     scene = lone_sphere(8)
     expected = np.array([0.8, 0.6, 0.4]) * environment_radiance(scene)
     out = {}
@@ -203,7 +203,7 @@ def test_delta_lights_are_refused(llvm, name):
 
 def _chi2(sample, n_points=1 << 18):
     """mi.chi2's test of ``sample`` (u ∈ [0,1)² → direction) against cos θ/π."""
-    from mcillum.integrators import fibonacci_hemisphere as fh
+    from mcillum.integrators.quadrature import fibonacci_hemisphere as fh
     test = mi.chi2.ChiSquareTest(
         domain=mi.chi2.SphericalDomain(),
         sample_func=sample, pdf_func=lambda w: fh.cosine_polar_pdf(w),
@@ -215,14 +215,14 @@ def _chi2(sample, n_points=1 << 18):
 def test_one_point_of_the_shifted_set_is_cosine_distributed(llvm, j, n):
     """Over shifts ξ ~ U[0,1)², point j of the mapped set has density cos θ/π
     (what makes the estimator unbiased); χ² at α = 0.01 (mi.chi2)."""
-    from mcillum.integrators import fibonacci_hemisphere as fh
+    from mcillum.integrators.quadrature import fibonacci_hemisphere as fh
     assert _chi2(lambda u: fh.sample_cosine_polar(fh.fibonacci_point(j, n, u)))
 
 
 def test_the_unshifted_set_is_not_cosine_distributed(llvm):
     """Negative control: a random point of the set turned about the normal
     (u_j fixed, v shifted) has only n values of θ: χ² rejects it."""
-    from mcillum.integrators import fibonacci_hemisphere as fh
+    from mcillum.integrators.quadrature import fibonacci_hemisphere as fh
     n = 16
 
     def turned(u):
@@ -233,7 +233,7 @@ def test_the_unshifted_set_is_not_cosine_distributed(llvm):
 
 
 def test_inverse_maps_back(llvm):
-    from mcillum.integrators import fibonacci_hemisphere as fh
+    from mcillum.integrators.quadrature import fibonacci_hemisphere as fh
     rng = np.random.default_rng(3)
     u = mi.Point2f(rng.random(1000), rng.random(1000))
     for fwd, inv in ((fh.sample_cosine_polar, fh.invert_cosine_polar),
@@ -513,7 +513,7 @@ def test_held_out_truth_is_the_map_integrated_about_each_normal(llvm):
     """The known answers the settings are scored on: against a brute-force
     sum over 2^18 directions of the courtyard map (agreement measured ~1e-3,
     the brute force's own error)."""
-    from mcillum.integrators import gp_scene as bh
+    from mcillum.integrators.quadrature import gp_scene as bh
     scene = lone_sphere(4, envmap="courtyard")
     env = scene.environment()
     normals = bh.sphere_directions(6)
@@ -527,7 +527,7 @@ def test_held_out_lobes_are_the_same_in_scalar_and_llvm(use_variant):
     finds the same held-out lobes as llvm_ad_rgb (axes, exponents, origins;
     float32 round-off apart). The first version's scalar branch failed to
     unpack a missed ray's result."""
-    from mcillum.integrators import gp_scene
+    from mcillum.integrators.quadrature import gp_scene
     got = {}
     for variant in ("llvm_ad_rgb", "scalar_rgb"):
         use_variant(variant)
@@ -546,8 +546,8 @@ def test_held_out_integrals_see_what_occludes_them(llvm):
     half-angle 30° is blocked, sin²30° = ¼ of the cosine-weighted
     hemisphere, so a constant map of radiance 1 gives 0.75 there (1 without
     the scene); the node values are 0 exactly where a ray hits the sphere."""
-    from mcillum.integrators import gp_scene as bh
-    from mcillum.integrators import gp_settings
+    from mcillum.integrators.quadrature import gp_scene as bh
+    from mcillum.integrators.quadrature import gp_settings
     scene = mi.load_dict({"type": "scene", "sky": {"type": "constant"},
                           "ball": {"type": "sphere", "center": [0, 0, 2], "radius": 1.0}})
     env, up = scene.environment(), np.array([[0.0, 0.0, 1.0]])
@@ -566,7 +566,7 @@ def test_held_out_normals_are_those_the_camera_sees(llvm):
     ones, under the view's square of half-width 0.7 (z ≥ √(1 − 2·0.7²) =
     0.14, none beyond the square); where the camera sees no
     surface, directions over the whole sphere stand in."""
-    from mcillum.integrators import gp_scene as bh
+    from mcillum.integrators.quadrature import gp_scene as bh
     normals = bh.held_out_normals(lone_sphere(4, envmap="sg"))
     assert len(normals) == bh.HELD_OUT_NORMALS
     assert normals[:, 2].min() > 0.14 and np.abs(normals[:, :2]).max() < 0.7
@@ -607,7 +607,7 @@ def test_held_out_lobes_are_mirror_directions_with_the_bsdfs_exponent(llvm):
     axis is the camera ray mirrored about the sphere's normal, and the
     exponent read off the glossy density is the BSDF's own; under a constant
     map the lobe's held-out integral is that constant."""
-    from mcillum.integrators import gp_scene
+    from mcillum.integrators.quadrature import gp_scene
     scene = phong_sphere(16, envmap="constant", exponent=30)
     axes, exponents, _ = gp_scene.held_out_lobes(scene)
     assert len(axes) == 64
@@ -699,7 +699,7 @@ def test_the_glossy_sets_settings_reach_results_and_report(llvm):
 
     import jsonschema
 
-    from mcillum.integrators import gp_settings
+    from mcillum.integrators.quadrature import gp_settings
     from mcillum.validation import results
     from mcillum.validation.report import scenes as report_scenes
     from mcillum.validation.results import json_io
@@ -814,7 +814,7 @@ def test_a_phong_lobe_covers_itself_and_a_ggx_lobe_is_widened(llvm):
     """phong.covering_exponent: for a Phong lobe the exponent its peak
     gives (its tails fall as cosⁿ exactly); for a GGX lobe of the same peak
     a smaller one (its tails fall as a power); a Beckmann lobe between."""
-    from mcillum.integrators import phong
+    from mcillum.integrators.bsdfs import phong
     si = dr.zeros(mi.SurfaceInteraction3f)
     si.n, si.sh_frame = mi.Normal3f(0, 0, 1), mi.Frame3f(mi.Vector3f(0, 0, 1))
     si.wi = mi.Vector3f(0, 0, 1)

@@ -32,7 +32,7 @@ import pytest
 
 import mitsuba as mi
 
-from mcillum.integrators import registry
+from mcillum.integrators.core import registry
 from mcillum.validation.plan import scenes
 from mcillum.validation.run import renders
 from mcillum.validation.stats import statistics

@@ -88,7 +88,7 @@ def test_a_scene_with_a_stratified_sampler_renders_the_baseline_at_n_spp(llvm, t
 def test_planned_renders_count_one_timing_per_baseline(llvm, names, timed):
     """The progress bar's count: TIMED renders per estimator and per
     distinct baseline, K per extra N of one biased by design."""
-    from mcillum.integrators import registry
+    from mcillum.integrators.core import registry
 
     biased = sum(not registry.facts(n).unbiased for n in names) * len(
         quadrature.BIAS_DIRECTIONS)

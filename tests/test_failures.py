@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from mcillum.envmaps import procedural, sun
-from mcillum.integrators import registry
+from mcillum.integrators.core import registry
 from mcillum.validation import pipeline
 from mcillum.validation.plan import profiles, seeds
 from mcillum.validation.run import renders

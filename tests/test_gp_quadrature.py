@@ -1,4 +1,4 @@
-"""Bayesian Monte Carlo maths (integrators/gp_quadrature.py): kernel means
+"""Bayesian Monte Carlo maths (integrators/quadrature/gp_quadrature.py): kernel means
 against brute-force quadrature, exactness on the kernel, convergence on a
 smooth function, the error factor and the amplitude divisor against sampled
 Gaussian processes, conditioning, and the maximum-likelihood length scale."""
@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from mcillum.integrators import gp_quadrature as gq
-from mcillum.integrators import gp_settings as gs
+from mcillum.integrators.quadrature import gp_quadrature as gq
+from mcillum.integrators.quadrature import gp_settings as gs
 
 
 def product_grid(n_theta: int, n_phi: int) -> tuple[np.ndarray, np.ndarray]:

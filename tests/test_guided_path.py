@@ -24,13 +24,13 @@ ROOM = str(SCENES / "sunlit_room.xml")
 
 def gp():
     """The plugin module, bound to the current variant."""
-    from mcillum.integrators import guided_path
+    from mcillum.integrators.guiding import guided_path
     return guided_path
 
 
 def guide():
-    """What the plugin learns and samples from (integrators/guide.py)."""
-    from mcillum.integrators import guide
+    """What the plugin learns and samples from (integrators/guiding/guide.py)."""
+    from mcillum.integrators.guiding import guide
     return guide
 
 
@@ -614,7 +614,7 @@ def test_a_users_integrator_and_scene_can_ask_for_the_learning_stage(llvm):
     """A user's class declares ``learns`` (a fact it may declare); a
     profile's [user_scenes] ``learning = true`` reaches every scene given
     by path."""
-    from mcillum.integrators import registry
+    from mcillum.integrators.core import registry
     from mcillum.validation.plan import profiles, user_scenes
     from mcillum.validation.stages import learning
 

@@ -2,7 +2,7 @@
 
 Mitsuba 3.9.1 splits such renders itself only when spp divides evenly into its
 pass count; otherwise it raises. mcillum's plugins (and ``renders.render`` for
-Mitsuba's own integrators) plan the passes themselves (integrators/passes.py).
+Mitsuba's own integrators) plan the passes themselves (integrators/core/passes.py).
 The split render is checked against the unsplit one with the wavefront limit
 lowered, and once for real (marked slow: about 70 s per integrator here).
 """
@@ -13,7 +13,7 @@ from scipy import stats
 
 import mitsuba as mi
 
-from mcillum.integrators import passes
+from mcillum.integrators.core import passes
 from mcillum.validation.run import renders
 from mcillum.validation.stats import statistics
 from mcillum.errors import root_cause

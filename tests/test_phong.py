@@ -46,7 +46,7 @@ def test_chi2_sampling_matches_pdf(llvm, n, theta, tmp_path, monkeypatch):
 
 def test_chi2_rejects_a_wrong_pdf(llvm, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    from mcillum.integrators.phong import PhongBSDF
+    from mcillum.integrators.bsdfs.phong import PhongBSDF
 
     class WrongPdf(PhongBSDF):
         def pdf(self, ctx, si, wo, active=True):
@@ -84,7 +84,7 @@ def albedo(bsdf, theta_deg, count=1 << 20, seed=7):
 def unnormalised(kd=0.3, ks=0.7, n=10.0):
     """A broken twin of :func:`make`: the lobe normalised by (n+1)/(2π), the
     textbook slip (that is the pdf's constant, not the BSDF's)."""
-    from mcillum.integrators.phong import PhongBSDF
+    from mcillum.integrators.bsdfs.phong import PhongBSDF
 
     class Unnormalised(PhongBSDF):
         def eval(self, ctx, si, wo, active=True):
@@ -122,7 +122,7 @@ def albedo_exact(kd, ks, n, theta_deg):
 @pytest.mark.parametrize("n", [1, 10, 100])
 def test_lobe_inverse_maps_back(llvm, n):
     """invert_phong_lobe undoes sample_phong_lobe (the trio's third member)."""
-    from mcillum.integrators.phong import invert_phong_lobe, sample_phong_lobe
+    from mcillum.integrators.bsdfs.phong import invert_phong_lobe, sample_phong_lobe
     rng = np.random.default_rng(5)
     u = mi.Point2f(rng.uniform(0.01, 0.99, 1000), rng.uniform(0.01, 0.99, 1000))
     back = invert_phong_lobe(sample_phong_lobe(u, n), n)

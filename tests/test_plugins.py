@@ -1,10 +1,12 @@
 """Plugin behaviour: registration, XML use, parameters, variants, and Ctrl-C
 around nested renders. (What they refuse: test_refusals.py.)"""
 
+import importlib
 import re
 import subprocess
 import sys
 import textwrap
+import warnings
 
 import numpy as np
 import pytest
@@ -62,6 +64,104 @@ def test_defaults_follow_path(variant, name):
     integrator = mi.load_dict({"type": name})
     assert integrator.max_depth == 0xFFFFFFFF and integrator.rr_depth == 5
     assert integrator.hide_emitters is False
+
+
+# ------------------------- Plugins found by folder -------------------------
+
+def test_plugins_are_the_modules_of_the_family_folders_that_register_one():
+    from mcillum.integrators.core import registry
+    found = integrators.plugin_modules()
+    assert set(found) == {f"{registry.plugin_class(n).__module__}".removeprefix(
+        "mcillum.integrators.") for n in registry.names()} | {"bsdfs.phong"}, found
+    # a base class before the classes derived from it, as they are reloaded
+    assert found.index("mc.bsdf_sampling") < found.index("mc.mis")
+
+
+def test_every_folder_of_integrators_is_a_family_or_core():
+    folders = {p.name for p in (ROOT / "integrators").iterdir() if (p / "__init__.py").exists()}
+    assert folders == {*integrators.FAMILIES, "core"}
+
+
+@pytest.mark.parametrize("source, plugin", [
+    ("class A: ...\n\nregistry.register(A)\n", True),
+    ('mi.register_bsdf("b", lambda props: B(props))\n', True),
+    ("def f():\n    registry.register(A)\n", False),      # not at module level
+    ("# registry.register(A)\nX = 1\n", False),
+])
+def test_a_module_that_registers_at_module_level_is_a_plugin(tmp_path, source, plugin):
+    (tmp_path / "m.py").write_text(source)
+    assert integrators.is_plugin(tmp_path / "m.py") is plugin
+
+
+# ------------------- The module paths before the families -------------------
+
+@pytest.fixture
+def old_paths_forgotten():
+    """No old path imported before the test, none left after it."""
+    def forget():
+        for old in integrators.MOVED:
+            sys.modules.pop(f"mcillum.integrators.{old}", None)
+            vars(integrators).pop(old, None)
+    forget()
+    yield
+    forget()
+
+
+@pytest.mark.parametrize("old", sorted(integrators.MOVED))
+def test_an_old_path_imports_the_same_module_and_warns(old, old_paths_forgotten):
+    new = importlib.import_module(f"mcillum.integrators.{integrators.MOVED[old]}")
+    spec = new.__spec__
+    with pytest.warns(DeprecationWarning,
+                      match=rf"mcillum\.integrators\.{old} is now {re.escape(new.__name__)}"):
+        module = importlib.import_module(f"mcillum.integrators.{old}")
+    assert module is new and new.__spec__ is spec         # (reload() reads the spec)
+
+
+@pytest.mark.parametrize("code", [
+    "import mcillum.integrators.guide as m",
+    "from mcillum.integrators import guide as m",
+    "from mcillum.integrators.guide import GRID as m",
+    "import mcillum\nm = mcillum.integrators.guide",
+])
+def test_each_form_of_an_old_import_warns_at_its_line(code, old_paths_forgotten):
+    from mcillum.integrators.guiding import guide
+    namespace = {}
+    with pytest.warns(DeprecationWarning, match="is now mcillum.integrators.guiding.guide") as seen:
+        exec(compile(code, "<user's code>", "exec"), namespace)
+    assert namespace["m"] in (guide, guide.GRID)
+    assert len(seen) == 1 and seen[0].filename == "<user's code>", [
+        (w.filename, str(w.message)) for w in seen]
+
+
+def test_an_old_path_survives_a_variant_switch(old_paths_forgotten):
+    with pytest.warns(DeprecationWarning):
+        from mcillum.integrators import cosine_hemisphere
+    renders.set_variant("scalar_rgb")
+    try:
+        assert isinstance(mi.load_dict({"type": "cosine_hemisphere"}), mi.SamplingIntegrator)
+        assert cosine_hemisphere.CosineHemisphereIntegrator.__bases__[0].__module__ \
+            == "mcillum.integrators.core.estimator"
+    finally:
+        renders.set_variant("llvm_ad_rgb")
+
+
+def test_the_new_paths_and_registration_do_not_warn():
+    """A fresh process: import mcillum, register in two variants, import
+    every module by its new path; not one DeprecationWarning of ours."""
+    result = subprocess.run([sys.executable, "-c", textwrap.dedent("""
+        import importlib, warnings
+        warnings.simplefilter("always")
+        with warnings.catch_warnings(record=True) as seen:
+            import mcillum, mitsuba as mi
+            from mcillum import integrators
+            mi.set_variant("scalar_rgb")
+            mi.set_variant("llvm_ad_rgb")
+            for new in integrators.MOVED.values():
+                importlib.import_module(f"mcillum.integrators.{new}")
+        print([str(w.message) for w in seen if "mcillum.integrators." in str(w.message)])
+        """)], capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip().splitlines()[-1] == "[]", result.stdout
 
 
 # ---------------------------- Bad parameters --------------------------------

@@ -11,7 +11,8 @@ import pytest
 
 import mitsuba as mi
 
-from mcillum.integrators import UnreachableContentError, registry
+from mcillum.integrators import UnreachableContentError
+from mcillum.integrators.core import registry
 from mcillum.validation.plan import scenes
 from mcillum.validation.run import renders
 from mcillum.errors import root_cause

@@ -11,8 +11,8 @@ import pytest
 import drjit as dr
 import mitsuba as mi
 
-from mcillum.integrators import registry
-from mcillum.integrators.scene_checks import KINDS
+from mcillum.integrators.core import registry
+from mcillum.integrators.core.scene_checks import KINDS
 from mcillum.validation import pipeline, results
 from mcillum.validation.plan import profiles, scenes
 from mcillum.validation.report import charts

@@ -27,7 +27,7 @@ import pytest
 
 import mitsuba as mi
 
-from mcillum.integrators import registry
+from mcillum.integrators.core import registry
 from mcillum.validation.run import renders
 from mcillum.validation.stats import statistics
 

@@ -11,7 +11,7 @@ import pytest
 import mcillum  # noqa: F401
 import mitsuba as mi
 
-from mcillum.integrators import registry
+from mcillum.integrators.core import registry
 from mcillum.validation.plan import scenes
 from mcillum.validation.run import jobs, renders, replays
 

@@ -16,8 +16,8 @@ import pytest
 import drjit as dr
 import mitsuba as mi
 
-from mcillum.integrators.bsdf_sampling import bsdf_direction_pdf, sample_bsdf_direction
-from mcillum.integrators.emitter_sampling import emitter_direction_pdf, sample_emitter_direction
+from mcillum.integrators.mc.bsdf_sampling import bsdf_direction_pdf, sample_bsdf_direction
+from mcillum.integrators.mc.emitter_sampling import emitter_direction_pdf, sample_emitter_direction
 from mcillum.validation.plan import scenes
 from mcillum.validation.run import renders
 

@@ -5,7 +5,7 @@ says it contains. (The others must refuse it: test_refusals.py.)"""
 import numpy as np
 import pytest
 
-from mcillum.integrators import registry
+from mcillum.integrators.core import registry
 from mcillum.validation.plan import scenes
 from mcillum.validation.run import renders
 

@@ -13,6 +13,7 @@ from importlib import metadata
 import pytest
 
 from mcillum.integrators import _llvm
+from mcillum.integrators.core import registry
 
 from conftest import ROOT
 
@@ -187,7 +188,7 @@ def test_install_adds_one_package_and_its_scenes(tmp_path):
     # no .pth there is read, so this checkout's editable mcillum stays out)
     result = subprocess.run([python, "-c", textwrap.dedent("""
         import mcillum, mitsuba as mi
-        from mcillum.integrators import registry
+        from mcillum.integrators.core import registry
         from mcillum.validation.plan import scenes
         mi.set_variant("scalar_rgb")
         print(mcillum.__file__)
@@ -198,25 +199,48 @@ def test_install_adds_one_package_and_its_scenes(tmp_path):
     assert result.returncode == 0, result.stderr
     package, cornell, names = result.stdout.strip().splitlines()[-3:]
     assert package.startswith(site) and cornell.startswith(site), result.stdout
-    assert "cosine_hemisphere" in names.split()
+    assert names.split() == registry.names()       # every family's folder was installed
+
+
+#: The checkout's folders that are also importable as top-level packages.
+FOLDERS = ("integrators", "envmaps", "validation")
+
+
+def top_level_imports(root, folders=("mcillum", *FOLDERS, "tests")) -> list[str]:
+    """``path:line name`` for every import of one of :data:`FOLDERS` as a
+    top-level package in any module under ``folders`` of ``root``, subfolders
+    included."""
+    import ast
+
+    bad = []
+    for folder in folders:
+        for path in sorted((root / folder).rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+                names = ([a.name for a in node.names] if isinstance(node, ast.Import) else
+                         [node.module or ""] if isinstance(node, ast.ImportFrom)
+                         and node.level == 0 else [])
+                bad += [f"{path.relative_to(root)}:{node.lineno} {n}" for n in names
+                        if n.split(".")[0] in FOLDERS]
+    return bad
 
 
 def test_no_module_imports_the_folders_as_top_level_packages():
     """Inside a checkout `integrators`, `envmaps` and `validation` are also
     importable as folders; importing them so would load a second copy of every
     plugin class. Every module imports them as mcillum.* (or relatively)."""
-    import ast
+    assert not top_level_imports(ROOT)
 
-    bad = []
-    for folder in ("mcillum", "integrators", "envmaps", "validation", "tests"):
-        for path in sorted((ROOT / folder).glob("*.py")):
-            for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
-                names = ([a.name for a in node.names] if isinstance(node, ast.Import) else
-                         [node.module or ""] if isinstance(node, ast.ImportFrom)
-                         and node.level == 0 else [])
-                bad += [f"{path.relative_to(ROOT)}:{node.lineno} {n}" for n in names
-                        if n.split(".")[0] in ("integrators", "envmaps", "validation")]
-    assert not bad, bad
+
+def test_a_top_level_import_in_a_subfolder_is_caught(tmp_path):
+    (tmp_path / "validation" / "stages").mkdir(parents=True)
+    (tmp_path / "validation" / "stages" / "x.py").write_text("from validation import plan\n")
+    (tmp_path / "integrators" / "mc").mkdir(parents=True)
+    (tmp_path / "integrators" / "mc" / "y.py").write_text(
+        "import os\n\ndef f():\n    import integrators.core.registry\n")
+    (tmp_path / "integrators" / "mc" / "fine.py").write_text(
+        "from ..core import registry\nfrom mcillum.integrators import mc\n")
+    assert top_level_imports(tmp_path) == ["integrators/mc/y.py:4 integrators.core.registry",
+                                           "validation/stages/x.py:1 validation"]
 
 
 def test_tests_cannot_reach_off_this_machine():

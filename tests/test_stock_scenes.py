@@ -19,7 +19,8 @@ import pytest
 import mitsuba as mi
 
 from mcillum.errors import root_cause
-from mcillum.integrators import UnreachableContentError, registry
+from mcillum.integrators import UnreachableContentError
+from mcillum.integrators.core import registry
 from mcillum.validation.run import renders
 from mcillum.validation.stats import statistics
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import pytest
 
-from mcillum.integrators import registry
+from mcillum.integrators.core import registry
 from mcillum.validation import pipeline
 from mcillum.validation.checks import scene as scene_checks
 from mcillum.validation.checks.evidence import Decision

@@ -23,7 +23,7 @@ import mitsuba as mi
 
 from mcillum import plugins
 from mcillum.errors import UsageError
-from mcillum.integrators import registry
+from mcillum.integrators.core import registry
 from mcillum.validation import cli, pipeline
 from mcillum.validation.plan import profiles, scene_files, scenes, user_scenes
 from mcillum.validation.run import renders

@@ -19,7 +19,7 @@ from scipy import stats
 import mitsuba as mi
 
 from mcillum import files
-from mcillum.integrators import registry
+from mcillum.integrators.core import registry
 from mcillum.envmaps import procedural
 from mcillum.validation import cli, pipeline, results
 from mcillum.validation.plan import profiles, scenes
@@ -467,7 +467,7 @@ def test_reference_key_changes_with_the_code_that_fills_it(llvm, monkeypatch):
     reference code gives a new key: a stale reference is never served."""
     import inspect
 
-    from mcillum.integrators import phong
+    from mcillum.integrators.bsdfs import phong
     path = scenes.path("furnace_sphere")
     defines = renders.resolve_defines(path, res=4)
 

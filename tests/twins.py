@@ -31,7 +31,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mcillum.integrators import registry
+from mcillum.integrators.core import registry
 from mcillum.validation.run import renders
 
 

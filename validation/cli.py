@@ -22,7 +22,7 @@ from mcillum import plugins as mcillum_plugins
 from mcillum.envmaps import catalog, safety
 
 from . import results
-from mcillum.integrators import registry
+from mcillum.integrators.core import registry
 
 from .plan import profiles, scenes
 from .results import layout

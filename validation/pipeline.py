@@ -48,7 +48,7 @@ import numpy as np
 from mcillum import files
 from mcillum import plugins as mcillum_plugins
 from mcillum.errors import Interrupted
-from mcillum.integrators import registry
+from mcillum.integrators.core import registry
 
 from . import report, results
 from .checks import cases as case_checks

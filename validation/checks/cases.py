@@ -21,7 +21,7 @@ did not come back on a fresh batch, and no budget was left to go on).
 
 from __future__ import annotations
 
-from mcillum.integrators import registry
+from mcillum.integrators.core import registry
 
 from ..results import CaseRow, Check, Sweep, SweepRow
 from . import check

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from mcillum.integrators import registry
+from mcillum.integrators.core import registry
 
 from ..stats import tails
 

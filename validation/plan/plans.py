@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from mcillum.errors import UsageError
-from mcillum.integrators import registry
+from mcillum.integrators.core import registry
 
 
 @dataclass(frozen=True, kw_only=True)

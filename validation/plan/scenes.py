@@ -16,7 +16,7 @@ import re
 from dataclasses import dataclass, field
 
 from mcillum import files
-from mcillum.integrators.scene_checks import KINDS
+from mcillum.integrators.core.scene_checks import KINDS
 
 #: scenes/ beside the package's subfolders (in a checkout and when installed):
 #: three folders up from validation/plan/.

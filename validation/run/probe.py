@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mcillum.integrators import registry
+from mcillum.integrators.core import registry
 
 from ..plan import scenes, seeds
 from .executors import Local

@@ -119,7 +119,8 @@ def _renders_by():
     renderer, the pass splitter, the replays of recorded launches and
     mcillum's own BSDF, which scenes may use
     (Mitsuba's code is keyed by its version)."""
-    from mcillum.integrators import passes, phong
+    from mcillum.integrators.core import passes
+    from mcillum.integrators.bsdfs import phong
     from . import replays
     return (renders, passes, phong, replays)
 

@@ -22,7 +22,8 @@ import mitsuba as mi
 import numpy as np
 
 from mcillum import envmaps, files, images, integrators
-from mcillum.integrators import gp_quadrature, passes, registry
+from mcillum.integrators.core import passes, registry
+from mcillum.integrators.quadrature import gp_quadrature
 
 from mcillum.errors import IntegratorError, SceneError, message, plugin_not_found
 from mcillum.errors import unreferenced_properties, unused_defines

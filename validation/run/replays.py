@@ -31,7 +31,7 @@ import gc
 import drjit as dr
 import mitsuba as mi
 
-from mcillum.integrators import registry
+from mcillum.integrators.core import registry
 
 from .renders import launch
 

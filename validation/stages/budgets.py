@@ -19,7 +19,7 @@ import os
 
 import numpy as np
 
-from mcillum.integrators import registry
+from mcillum.integrators.core import registry
 
 from ..plan import seeds
 from ..results import Try

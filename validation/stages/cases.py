@@ -16,7 +16,8 @@ from __future__ import annotations
 import numpy as np
 
 from mcillum import files
-from mcillum.integrators import UnreachableContentError, registry
+from mcillum.integrators import UnreachableContentError
+from mcillum.integrators.core import registry
 
 from ..plan import seeds
 from ..results import CaseReference, CaseResult, CaseRow, Sweep, SweepRow, TailNumbers

@@ -22,7 +22,7 @@ import os
 import numpy as np
 
 from mcillum.errors import NoSignal
-from mcillum.integrators import registry, scene_checks
+from mcillum.integrators.core import registry, scene_checks
 
 from ..plan import scenes, seeds
 from ..results import ReferenceSummary

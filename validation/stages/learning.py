@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mcillum.integrators import registry
+from mcillum.integrators.core import registry
 
 from ..results import Learning, LearningPoint
 from ..stats import costs, metrics

@@ -44,7 +44,7 @@ import math
 
 import numpy as np
 
-from mcillum.integrators import registry
+from mcillum.integrators.core import registry
 
 from ..checks import convergence
 from ..results import (BiasAtN, Calibration, EqualRays, GlossySettings, Quadrature,

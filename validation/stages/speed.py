@@ -67,7 +67,7 @@ import os
 import numpy as np
 
 from mcillum import files
-from mcillum.integrators import registry
+from mcillum.integrators.core import registry
 
 from ..plan import seeds
 from ..results import Budget, BudgetRun, Interval, Ratio, Speed, Try, layout

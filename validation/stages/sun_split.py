@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from mcillum.envmaps import sun
-from mcillum.integrators import registry
+from mcillum.integrators.core import registry
 
 from ..checks import evidence
 from ..checks import sun as sun_rules

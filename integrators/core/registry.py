@@ -1,13 +1,13 @@
 """The estimators mcillum knows, and the facts the validation suite reads off them.
 
 Each plugin class declares its facts as class attributes beside its strategy
-(see :class:`~mcillum.integrators.estimator.IlluminationEstimator`):
+(see :class:`~mcillum.integrators.core.estimator.IlluminationEstimator`):
 
 * ``plugin_name`` — the name Mitsuba knows it by (``<integrator type=...>``);
 * ``display_name`` — a few words for people;
 * ``colour`` — its colour on every chart of a report;
 * ``reachable`` — the kinds of scene content
-  (:data:`~mcillum.integrators.scene_checks.KINDS`) it renders without bias
+  (:data:`~mcillum.integrators.core.scene_checks.KINDS`) it renders without bias
   although a continuous hemisphere pdf cannot (delta lights, delta lobes,
   transmission); it refuses scenes holding any other kind;
 * ``max_direction_pdf`` — the largest density it puts on any direction, which

@@ -6,9 +6,9 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from . import registry
-from .direction_set import DirectionSetEstimator, frac
-from .estimator import over_pdf
+from ..core import registry
+from ..core.direction_set import DirectionSetEstimator, frac
+from ..core.estimator import over_pdf
 
 #: Φ, the golden ratio; 1/Φ = Φ − 1 spreads v_j = frac(j/Φ) evenly.
 GOLDEN = (1.0 + 5.0 ** 0.5) / 2.0

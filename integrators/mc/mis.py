@@ -3,10 +3,10 @@ combined by the power heuristic (Veach 1997), as Mitsuba's `path` does."""
 
 from __future__ import annotations
 
-from . import registry
+from ..core import registry
+from ..core.estimator import mis_weight  # noqa: F401  (the power heuristic, re-exported)
 from .bsdf_sampling import BSDFSamplingIntegrator
 from .emitter_sampling import emitter_direction_pdf, sample_emitter_direction
-from .estimator import mis_weight  # noqa: F401  (the power heuristic, re-exported)
 
 # ----------------------------- Strategy ---------------------------------
 # Directions: the BSDF's (bsdf_sampling) and the emitters' (emitter_sampling);

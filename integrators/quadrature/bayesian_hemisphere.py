@@ -10,11 +10,12 @@ from typing import NamedTuple
 import drjit as dr
 import mitsuba as mi
 
-from . import gp_settings, registry, scene_checks
-from .direction_set import DirectionSetEstimator
-from .estimator import over_pdf
+from ..bsdfs.phong import covering_exponent, phong_lobe_pdf, sample_phong_lobe
+from ..core import registry, scene_checks
+from ..core.direction_set import DirectionSetEstimator
+from ..core.estimator import over_pdf
+from . import gp_settings
 from .fibonacci_hemisphere import MAPPINGS, fibonacci_point
-from .phong import covering_exponent, phong_lobe_pdf, sample_phong_lobe
 from .gp_scene import (DEFAULT_LENGTH_SCALE, DEFAULT_MAPPING, DEFAULT_NOISE, DEFAULT_SETS,
                        choose_hyperparameters, choose_lobe_settings, likelihood_length_scale)
 

@@ -8,10 +8,10 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from . import registry
-from .bsdf_sampling import sample_bsdf_direction
-from .emitter_sampling import emitter_direction_pdf, sample_emitter_direction
-from .estimator import IlluminationEstimator, over_pdf
+from ..core import registry
+from ..core.estimator import IlluminationEstimator, over_pdf
+from ..mc.bsdf_sampling import sample_bsdf_direction
+from ..mc.emitter_sampling import emitter_direction_pdf, sample_emitter_direction
 from .guide import (FAR, GRID, MAX_RECORDS, PASSES, PAYS_BELOW, SLOTS_PER_CELL, TRAIN_DEPTH,
                     TRAIN_FRACTION, UNSEEN_ABOVE, Guide, PixelMoments, Records, Tally, anchor_of,
                     grid_of, measured_ratios, on_plane, pass_seed, square_cell, take,

@@ -12,9 +12,9 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from . import registry
-from .direction_set import DirectionSetEstimator, frac
-from .estimator import over_pdf
+from ..core import registry
+from ..core.direction_set import DirectionSetEstimator, frac
+from ..core.estimator import over_pdf
 
 # ----------------------------- Strategy ---------------------------------
 # The integral is taken in the unit square of each strategy's own sampling

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import mitsuba as mi
 
-from . import registry
-from .estimator import IlluminationEstimator
+from ..core import registry
+from ..core.estimator import IlluminationEstimator
 
 # ----------------------------- Strategy ---------------------------------
 

@@ -12,7 +12,7 @@ import mitsuba as mi
 import numpy as np
 
 from . import gp_quadrature, gp_settings
-from .phong import covering_exponent
+from ..bsdfs.phong import covering_exponent
 from .gp_settings import sphere_directions
 
 #: The settings ``auto`` stands for where the scene has no environment map,

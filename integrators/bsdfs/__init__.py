@@ -1,0 +1,1 @@
+"""BSDFs Mitsuba lacks: ``phong``, the energy-normalised modified Phong BSDF."""
