@@ -5,7 +5,7 @@
 Opens RUN_DIR/report/index.html (written by `mcillum validate --out RUN_DIR`;
 `make screenshot` runs the quick profile first) in headless Chromium, takes the
 top of the page, and writes it as PNG with the code that drew it: a hash of
-validation/report/*.py in its text chunk ``mcillum-report``. The test
+validation/report/*.py and *.js in its text chunk ``mcillum-report``. The test
 ``tests/test_docs.py`` compares that hash with the code as it stands, so a change
 to the report fails the tests until the picture is taken again.
 Needs Debian's chromium and chromium-driver (``make browser``).
@@ -27,10 +27,10 @@ KEY = "mcillum-report"
 
 
 def report_code_hash() -> str:
-    """sha256 of the report's modules (validation/report/*.py, by name)."""
+    """sha256 of the report's code (validation/report/*.py and *.js, by name)."""
     h = hashlib.sha256()
     for name in sorted(os.listdir(REPORT_CODE)):
-        if name.endswith(".py"):
+        if name.endswith((".py", ".js")):
             h.update(name.encode())
             with open(os.path.join(REPORT_CODE, name), "rb") as f:
                 h.update(f.read())

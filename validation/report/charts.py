@@ -16,7 +16,7 @@ from collections import Counter
 import matplotlib
 import numpy as np
 
-from mcillum.integrators import registry
+from mcillum.integrators.core import registry
 
 from ..results import CaseResult, Results, SceneResult
 

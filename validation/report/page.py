@@ -24,7 +24,7 @@ import time
 
 from mcillum import files
 from mcillum.errors import UserError
-from mcillum.integrators.scene_checks import KIND_NAMES
+from mcillum.integrators.core.scene_checks import KIND_NAMES
 
 from .. import results
 from ..results import Results, layout
