@@ -27,7 +27,7 @@ Layers, top to bottom:
     validation.plan       profiles, scenes, seeds
     validation            this package (this docstring)
     mcillum               the front door: LLVM set-up and plugin registration
-    integrators           the plugins, one estimator per file, and their facts
+    integrators           the plugins by family (core, mc, quadrature, guiding, bsdfs)
     envmaps               environment maps: probes, procedural maps, the loading policy
     errors files images plugins   mcillum's own helpers: errors, files, tone mapping, users' plugins
 """

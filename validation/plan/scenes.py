@@ -2,7 +2,7 @@
 
 Each scene opens with a comment that says what it tests (first paragraph:
 ``<name>: <summary>``) and, on a line ``Contains: ...``, the kinds of content
-(:data:`~mcillum.integrators.scene_checks.KINDS`) that a continuous hemisphere
+(:data:`~mcillum.integrators.core.scene_checks.KINDS`) that a continuous hemisphere
 pdf cannot reach: delta lights, delta lobes, transmission. Which estimators
 render a scene follows from that line and each estimator's registry facts
 (``registry.facts(name).renders(info.contains)``); those that cannot must

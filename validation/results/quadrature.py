@@ -50,7 +50,7 @@ class Calibration:
 
 @dataclass(kw_only=True)
 class SettingScore:
-    """One candidate's held-out error (integrators/gp_settings.py)."""
+    """One candidate's held-out error (integrators/quadrature/gp_settings.py)."""
 
     mapping: str
     noise: float

@@ -24,7 +24,7 @@ import mitsuba as mi
 #: Warnings said once per integrator: the group ``name`` is the integrator,
 #: the rest of the match is the same for all of them.
 REPEATED = (
-    # integrators/scene_checks.py, check_reachable
+    # integrators/core/scene_checks.py, check_reachable
     re.compile(r"(?P<name>[\w.-]+) with allow_unreachable=true: "),
 )
 

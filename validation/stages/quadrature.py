@@ -25,7 +25,7 @@ rung and resolution.
   standard error. The check bias_shrinks reads its limit (checks/scene.py).
 * **Settings** (estimators that choose them, ``chosen_settings``): what
   was chosen for the scene at this spp, how, and every candidate's
-  held-out error (bayesian_hemisphere's ``auto``: integrators/gp_settings.py).
+  held-out error (bayesian_hemisphere's ``auto``: integrators/quadrature/gp_settings.py).
 * **Calibration of the posterior standard deviation** (estimators that
   write the ``posterior_std`` AOV), at the rung below the ladder's top
   (run/references.bars_rung: the reference resolves that rung's error bars
