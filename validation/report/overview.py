@@ -110,8 +110,8 @@ def _efficiency(ratio) -> tuple[str, str, str]:
     text = ratio_text(ratio)
     if ratio is None or text == "—":
         return "", "", ""
-    if ratio.kind == "off_budget":
-        return "withheld", f"(off its time budget: {ratio.reason})", ""
+    if ratio.kind == "off_budget":                   # (the reason: on hover)
+        return "withheld", "(off its time budget)", ""
     # the value ("0.48", "≤ 3e-05", "≥ 2.1"), then its interval or what bounds it
     head, rest = re.match(r"(.*?)(?: ([\[(].*))?$", text).groups()
     rest = rest or ""
@@ -150,7 +150,10 @@ def matrix(res: Results, colours: dict) -> str:
                 glyph, cls, title = BY_DESIGN[0], BY_DESIGN[1], "biased by design: " + title
             value, detail, eff_cls = "", "", ""
             if s.speed is not None and n in s.speed.efficiency_vs_path and n != "path":
-                value, detail, eff_cls = _efficiency(s.speed.efficiency_vs_path[n])
+                ratio = s.speed.efficiency_vs_path[n]
+                value, detail, eff_cls = _efficiency(ratio)
+                if ratio.kind == "off_budget":
+                    title = f"{title}; efficiency {ratio_text(ratio)}"
             cells.append(
                 f"<td class='cell {eff_cls}' title='{html.escape(title, quote=True)}'>"
                 f"<a href='#{html.escape(evidence_anchor(s.name, n))}'><span class={cls}>"

@@ -273,7 +273,7 @@ kbd{font:11px monospace;border:1px solid #bbb;border-radius:2px;padding:0 3px;ba
 .vport{position:relative;overflow:hidden;background:#333;cursor:crosshair;flex:none}
 .vport canvas{position:absolute;left:0;top:0;transform-origin:0 0;image-rendering:pixelated}
 .vside{font-size:12px;min-width:300px} .vside table{font-size:12px;margin:4px 0}
-.vside td{padding:1px 6px;font-variant-numeric:tabular-nums} .vside tr.on{background:#e8f1fa;font-weight:bold}
+.vside td{padding:1px 6px;font-variant-numeric:tabular-nums;white-space:nowrap} .vside tr.on{background:#e8f1fa;font-weight:bold}
 .vcap{margin:0 0 4px}
 """
 
