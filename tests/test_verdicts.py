@@ -537,7 +537,8 @@ def test_a_reference_pixel_off_by_chance_is_not_confirmed_against_itself():
         rng = np.random.default_rng(seed)
         ref_mean = np.ones((P, P, 3))
         ref_mean[0, 0] += outlier * ref_se
-        ref = fixed(ref_mean, var=ref_se ** 2 * 10_000)
+        # (the image mean's variance, the pixels' over P²: it holds the outlier)
+        ref = fixed(ref_mean, var=ref_se ** 2 * 10_000, image_var=ref_se ** 2 * 10_000 / P ** 2)
 
         def draw(spp, k, sigma=SIGMA, scale=1.0):
             x = 1.0 + rng.normal(0, sigma / np.sqrt(spp), (k, P, P, 1))
