@@ -259,58 +259,33 @@ def _with(sources, name, extra):
     return {**sources, name: (path, src + "\n" + extra + "\n")}
 
 
-def test_an_upward_import_is_named():
-    sources = package_sources()
-    broken = _with(sources, "mcillum.validation.stats.metrics",
-                   "from ..stages import scene  # deliberately upward")
-    found = violations(broken, table())
-    assert any("mcillum.validation.stats.metrics imports mcillum.validation.stages.scene"
-               in f for f in found), found
+BROKEN = [
+    # (module, what is added to it, what one finding must say)
+    ("mcillum.validation.stats.metrics", "from ..stages import scene  # deliberately upward",
+     ["mcillum.validation.stats.metrics imports mcillum.validation.stages.scene"]),
+    ("mcillum.integrators.core.registry", "def f():\n    from mcillum.validation import pipeline",
+     ["mcillum.integrators.core.registry imports mcillum.validation.pipeline"]),
+    ("mcillum.validation.run.jobs", "from . import references  # references imports jobs",
+     ["import cycle:", "mcillum.validation.run.jobs", "mcillum.validation.run.references"]),
+    ("mcillum.integrators.mc.cosine_hemisphere", "from ..guiding import guide  # upward",
+     ["mcillum.integrators.mc.cosine_hemisphere imports mcillum.integrators.guiding.guide, "
+      "which sits above it"]),
+    ("mcillum.integrators.core.estimator", "def f():\n    from ..mc import mis",
+     ["mcillum.integrators.core.estimator imports mcillum.integrators.mc.mis"]),
+    ("mcillum.integrators.quadrature.gp_settings", "from . import gp_scene  # a cycle",
+     ["import cycle:", "quadrature.gp_settings", "quadrature.gp_scene"]),
+]
 
 
-def test_an_upward_import_inside_a_function_is_named():
-    sources = package_sources()
-    broken = _with(sources, "mcillum.integrators.core.registry",
-                   "def f():\n    from mcillum.validation import pipeline")
-    found = violations(broken, table())
-    assert any("mcillum.integrators.core.registry imports mcillum.validation.pipeline" in f
-               for f in found), found
-
-
-def test_a_cycle_within_one_layer_is_named():
-    sources = package_sources()
-    broken = _with(sources, "mcillum.validation.run.jobs",
-                   "from . import references  # references imports jobs")
-    found = violations(broken, table())
-    assert any(f.startswith("import cycle:") and "mcillum.validation.run.jobs" in f
-               and "mcillum.validation.run.references" in f for f in found), found
-
-
-def test_an_upward_import_between_families_is_named():
-    sources = package_sources()
-    broken = _with(sources, "mcillum.integrators.mc.cosine_hemisphere",
-                   "from ..guiding import guide  # deliberately upward")
-    found = violations(broken, table())
-    assert any("mcillum.integrators.mc.cosine_hemisphere imports "
-               "mcillum.integrators.guiding.guide, which sits above it" in f for f in found), found
-
-
-def test_core_importing_a_family_is_named():
-    sources = package_sources()
-    broken = _with(sources, "mcillum.integrators.core.estimator",
-                   "def f():\n    from ..mc import mis")
-    found = violations(broken, table())
-    assert any("mcillum.integrators.core.estimator imports mcillum.integrators.mc.mis"
-               in f for f in found), found
-
-
-def test_a_cycle_within_a_family_is_named():
-    sources = package_sources()
-    broken = _with(sources, "mcillum.integrators.quadrature.gp_settings",
-                   "from . import gp_scene  # gp_scene imports gp_settings")
-    found = violations(broken, table())
-    assert any(f.startswith("import cycle:") and "quadrature.gp_settings" in f
-               and "quadrature.gp_scene" in f for f in found), found
+@pytest.mark.parametrize("module, extra, says", BROKEN,
+                         ids=["upward", "upward-in-a-function", "cycle-in-a-layer",
+                              "upward-between-families", "core-imports-a-family",
+                              "cycle-in-a-family"])
+def test_a_broken_import_is_named(module, extra, says):
+    """An upward import (module level or in a function) or a cycle, in
+    validation/ or between and within the integrators' families."""
+    found = violations(_with(package_sources(), module, extra), table())
+    assert any(all(part in f for part in says) for f in found), found
 
 
 def test_a_family_without_a_row_is_named():
