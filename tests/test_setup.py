@@ -158,7 +158,7 @@ def _site_packages(python: str) -> str:
 def test_install_adds_one_package_and_its_scenes(tmp_path):
     """`pip install .` into a fresh venv adds exactly `mcillum` and its
     dist-info to site-packages; the installed package, run from elsewhere,
-    finds its scenes and plugins. Offline: the wheel is built without build
+    finds its scenes, plugins and the report's script. Offline: the wheel is built without build
     isolation and installed from the file (never `pip install --prefix` from
     this environment: pip would first uninstall this checkout's own install)."""
     build = tmp_path / "src"                       # a copy: the build leaves files behind
@@ -190,6 +190,8 @@ def test_install_adds_one_package_and_its_scenes(tmp_path):
         import mcillum, mitsuba as mi
         from mcillum.integrators.core import registry
         from mcillum.validation.plan import scenes
+        from mcillum.validation.report import viewer   # its script is package data
+        assert "DecompressionStream" in viewer.SCRIPT
         mi.set_variant("scalar_rgb")
         print(mcillum.__file__)
         print(scenes.index()["cornell_box"].path)
