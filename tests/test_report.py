@@ -383,9 +383,12 @@ def test_maps_are_exactly_the_colours_of_their_colour_bar():
     norm = matplotlib.colors.LogNorm(vmin=1e-3, vmax=1.0)
     wanted = parts.map_colours(levels)(norm(err), bytes=True)[..., :3]
     assert (parts.decoded(parts.error_map(err, 1e-3, 1.0)) == wanted).all()
+    # a FLIP map's steps (the viewer's data, report/viewer.py) on its palette
     flip = np.random.default_rng(0).uniform(0, 1, (64, 64))
-    wanted = parts.map_colours(parts.FLIP_LEVELS)(flip, bytes=True)[..., :3]
-    assert (parts.decoded(parts.flip_map(flip)) == wanted).all()
+    colours = parts.map_colours(parts.FLIP_LEVELS)
+    wanted = colours(flip, bytes=True)[..., :3]
+    palette = colours(np.arange(parts.FLIP_LEVELS), bytes=True)[:, :3]
+    assert (palette[parts.steps(flip, parts.FLIP_LEVELS)] == wanted).all()
 
 
 def noisy_ramp(sigma: float, rng) -> np.ndarray:

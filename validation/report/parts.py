@@ -1,5 +1,5 @@
 """The pieces of the report's HTML: images as data URIs (renders as AVIF where
-that keeps their noise, error and FLIP maps exact on a stepped colour scale),
+that keeps their noise, error maps exact on a stepped colour scale),
 the worst region, numbers, swatches, outcomes."""
 
 from __future__ import annotations
@@ -105,12 +105,17 @@ def map_colours(levels: int) -> matplotlib.colors.Colormap:
     return matplotlib.colormaps[ERROR_CMAP].resampled(levels)
 
 
+def steps(level: np.ndarray, levels: int) -> np.ndarray:
+    """Values in [0, 1] (NaN as 0) as the index of their step on
+    :func:`map_colours` (uint8): the step matplotlib would pick for them."""
+    level = np.nan_to_num(np.asarray(level, np.float64), nan=0.0)
+    return np.clip((level * levels).astype(np.int64), 0, levels - 1).astype(np.uint8)
+
+
 def _level_map(level: np.ndarray, levels: int) -> Picture:
     """Values in [0, 1] (NaN as 0) on :func:`map_colours` as an exact palette
     image (PNG or lossless WebP): each pixel the colour matplotlib would pick."""
-    level = np.nan_to_num(np.asarray(level, np.float64), nan=0.0)
-    index = np.clip((level * levels).astype(np.int64), 0, levels - 1)
-    image = Image.fromarray(index.astype(np.uint8), "P")
+    image = Image.fromarray(steps(level, levels), "P")
     image.putpalette(map_colours(levels)(np.arange(levels), bytes=True)[:, :3].ravel())
     return _picture(image, _LOSSLESS)
 
@@ -119,11 +124,6 @@ def error_map(err: np.ndarray, vmin: float, vmax: float) -> Picture:
     """A relative-error map on the logarithmic scale [vmin, vmax] (clipped)."""
     norm = matplotlib.colors.LogNorm(vmin=vmin, vmax=vmax, clip=True)
     return _level_map(np.ma.filled(norm(np.maximum(err, vmin)), 0.0), ERROR_LEVELS)
-
-
-def flip_map(flip: np.ndarray) -> Picture:
-    """A FLIP map in [0, 1] on the linear scale (FLIP's own)."""
-    return _level_map(np.clip(flip, 0.0, 1.0), FLIP_LEVELS)
 
 
 def worst_window(errors: list[np.ndarray]) -> tuple[int, int, int]:

@@ -18,7 +18,7 @@ from ..stats import metrics
 from . import charts
 from .parts import ERROR_LEVELS, FLIP_LEVELS, fmt, map_colours, outcome, swatch, worst_window
 from .overview import evidence_anchor
-from .viewer import Shown, Test, viewer, viewer_bytes
+from .viewer import Shown, Test, packed, text_bytes, viewer
 
 
 def scene_section(scene: SceneResult, run_dir: str, colours: dict,
@@ -187,16 +187,19 @@ def _load(sp) -> str:
 @dataclass(frozen=True)
 class Display:
     """A scene's equal-time renders as the report shows them: the viewer's
-    images (the reference first), the exposure, each estimator's relative
-    error map against the reference, and their estimators."""
+    images (the reference first) and their data as the viewer writes them
+    (viewer.packed: encoded once, for the page's budget and the page), the
+    exposure, each estimator's relative error map against the reference,
+    and their estimators."""
     shown: list
+    blobs: list
     exposure: float
     errors: list
     names: list
 
     def viewer_bytes(self) -> int:
-        """What the viewer's data of every image would take on the page."""
-        return viewer_bytes(self.shown)
+        """What the viewer's data of every image take on the page."""
+        return text_bytes(self.blobs)
 
 
 def display(scene: SceneResult, run_dir: str, colours: dict) -> Display | None:
@@ -218,7 +221,7 @@ def display(scene: SceneResult, run_dir: str, colours: dict) -> Display | None:
                            files.read_exr(os.path.join(d, f"{n}.exr"), "flip")[0][..., 0]))
     shown[1:] = [dataclasses.replace(s, test=_test(run_dir, scene, s.label)) for s in shown[1:]]
     errors = [metrics.relative_error_map(s.pixels, ref) for s in shown[1:]]
-    return Display(shown, images.exposure_for(ref), errors, names)
+    return Display(shown, packed(shown), images.exposure_for(ref), errors, names)
 
 
 def _test(run_dir: str, scene: SceneResult, name: str) -> Test | None:
@@ -262,7 +265,8 @@ below), corrected where its measured times missed the budget. Reference: <code>p
 {ref_info.spp} spp in {ref_info.passes} passes{capped}.{_timed_on(sp)} Tone mapping: the
 viewer starts at {_scaling(ev)}, clipped to [0, 1], sRGB, dithered by half an 8-bit level.
 Captions: spp and the measured time of the render shown.</p>
-{viewer(f"{scene.name}-viewer", shots.shown, ev, (vmin, vmax), (y, x0, size), max_bytes)}
+{viewer(f"{scene.name}-viewer", shots.shown, ev, (vmin, vmax), (y, x0, size), max_bytes,
+        shots.blobs)}
 <p class=desc>Keys 1–9 and 0 (or the buttons, or the arrows) flip between the images at one
 zoom and pan; the wheel zooms, a drag pans, a double-click fits. <b>i</b>, <b>e</b>, <b>f</b>:
 the image, its relative error |x−r|/(|r|+{metrics.EPSILON}) (mean over channels, the shared

@@ -36,7 +36,7 @@ import numpy as np
 from mcillum import images
 
 from ..stats import metrics
-from .parts import ERROR_LEVELS, FLIP_LEVELS, img, map_colours, render
+from .parts import ERROR_LEVELS, FLIP_LEVELS, img, map_colours, render, steps
 
 HALF_MAX = 65504.0              # the largest finite binary16
 VIEW_SIDE = 512                 # the viewer's canvas on screen, CSS pixels
@@ -155,12 +155,10 @@ def unpack_half(packed: bytes, height: int, width: int) -> np.ndarray:
 
 
 def pack_levels(level: np.ndarray, levels: int = FLIP_LEVELS) -> bytes:
-    """A map in [0, 1] (H, W; NaN as 0) as its deflated step indices: floor(level·levels), clipped to levels − 1, the colour step each
-    pixel is shown in (as :func:`.parts.flip_map` draws it). Half the bytes
-    of 8-bit levels, and a reader reads a step, not a value, off a map."""
-    level = np.clip(np.nan_to_num(np.asarray(level, np.float64)), 0, 1)
-    q = np.minimum((level * levels).astype(np.int64), levels - 1)
-    return zlib.compress(q.astype(np.uint8).tobytes(), 9)
+    """A map in [0, 1] (H, W; NaN as 0) as its deflated step indices
+    (:func:`.parts.steps`): the colour step each pixel is shown in. Half the
+    bytes of 8-bit levels, and a reader reads a step, not a value, off a map."""
+    return zlib.compress(steps(level, levels).tobytes(), 9)
 
 
 def _palette(levels: int) -> list[str]:
@@ -168,17 +166,17 @@ def _palette(levels: int) -> list[str]:
             map_colours(levels)(np.arange(levels), bytes=True)]
 
 
-def _packed(shown: list[Shown]) -> list[bytes]:
+def packed(shown: list[Shown]) -> list[bytes]:
     """Each image's data, then its FLIP map and its test where it has them,
-    in that order."""
+    in that order: what :func:`viewer` writes for ``shown``."""
     return [b for s in shown for b in
             [pack_half(s.pixels)] + ([] if s.flip is None else [pack_levels(s.flip)])
             + ([] if s.test is None else [pack_test(s.test.p)])]
 
 
-def viewer_bytes(shown: list[Shown]) -> int:
-    """The bytes (UTF-8) that a viewer of ``shown`` writes for its data."""
-    return sum(-(-8 * len(b) // 7) for b in _packed(shown))
+def text_bytes(blobs: list[bytes]) -> int:
+    """The bytes (UTF-8) that ``blobs`` take on the page (:func:`pack_text`)."""
+    return sum(-(-8 * len(b) // 7) for b in blobs)
 
 
 def window(height: int, width: int, worst: tuple[int, int, int] | None,
@@ -195,24 +193,27 @@ def window(height: int, width: int, worst: tuple[int, int, int] | None,
 
 def viewer(anchor: str, shown: list[Shown], exposure: float,
            error_scale: tuple[float, float], worst: tuple[int, int, int] | None = None,
-           max_bytes: int | None = None) -> str:
+           max_bytes: int | None = None, blobs: list[bytes] | None = None) -> str:
     """The HTML of one viewer: ``shown[0]`` is the reference; ``exposure``
     the starting EV; ``error_scale`` (vmin, vmax) the relative-error map's
     logarithmic scale, shared with the page's colour bar; ``worst`` (y, x,
     size) a region the key w zooms to. Where the data of the whole film
     would exceed ``max_bytes``, the viewer holds the square window about
     the worst region that fits, every pixel of it exact, and the page shows
-    the whole film beside it as a picture. Raises ValueError if the images
+    the whole film beside it as a picture. ``blobs``: :func:`packed` of
+    ``shown`` where the caller has it. Raises ValueError if the images
     differ in size."""
     h, w = shown[0].pixels.shape[:2]
     if any(s.pixels.shape[:2] != (h, w) for s in shown):
         raise ValueError("a viewer's images must share one size")
-    whole, origin, full = shown, (0, 0), viewer_bytes(shown)
+    blobs = packed(shown) if blobs is None else blobs
+    whole, origin, full = shown, (0, 0), text_bytes(blobs)
     if max_bytes is not None and full > max_bytes:
         # bytes go with pixels; 0.95: room for what the window's content adds
         y0, x0, side = window(h, w, worst, 0.95 * max_bytes / full)
         cut = lambda a: None if a is None else a[y0:y0 + side, x0:x0 + side]  # noqa: E731
         shown = [Shown(s.label, s.caption, cut(s.pixels), cut(s.flip), s.test) for s in shown]
+        blobs = packed(shown)
         origin, h, w = (x0, y0), side, side
         if worst:
             worst = (worst[0] - y0, worst[1] - x0, worst[2])
@@ -221,7 +222,7 @@ def viewer(anchor: str, shown: list[Shown], exposure: float,
             "errorScale": list(error_scale), "errorPalette": _palette(ERROR_LEVELS),
             "flipPalette": _palette(FLIP_LEVELS),
             "images": [{"label": s.label, "caption": s.caption} for s in shown]}
-    blobs = "".join(map(_blob, _packed(shown)))
+    data_elements = "".join(map(_blob, blobs))
     for im, s in zip(spec["images"], shown):
         im["flip"] = s.flip is not None
         im["test"] = None if s.test is None else {
@@ -245,7 +246,7 @@ name="{html.escape(anchor)}-mode" value=flip> FLIP <kbd>f</kbd></label>
 <div class=vmain><div class=vport style="width:{VIEW_SIDE}px;height:{VIEW_SIDE}px">
 <canvas width={w} height={h}></canvas></div>
 <div class=vside><p class=vcap></p><table class=vpix></table></div></div>
-<script type="application/json" class=vdata>{data}</script>{blobs}
+<script type="application/json" class=vdata>{data}</script>{data_elements}
 <noscript><p>The viewer needs JavaScript.</p></noscript>
 </div>{_whole(whole[0], exposure, origin, h) if shown is not whole else ""}"""
 
