@@ -189,7 +189,7 @@ def measure_speed(ctx) -> None:
     ctx.notes.extend(learner_notes(budgets))
     # (a withheld figure is not ranked: it was not read at equal time)
     ranking = costs.ranking({n: (e.value, e.ci) for n, e in eff.items()
-                             if n not in ratios or ratios[n].kind != "off_budget"})
+                             if ratios[n].kind != "off_budget"})
     # the pilot's renders, every repeat: a line through the budgets' renders
     # too gave fixed costs of -8 to -14 ms [intervals below 0], since a sample
     # costs less at large spp than at 1-16 (docs/measurements.md, 2026-12-03)
