@@ -21,6 +21,8 @@ from contextlib import contextmanager
 
 import mitsuba as mi
 
+from . import progress
+
 #: Warnings said once per integrator: the group ``name`` is the integrator,
 #: the rest of the match is the same for all of them.
 REPEATED = (
@@ -93,12 +95,8 @@ def plain(stream=None, colour: bool | None = None):
     """While inside, Mitsuba's log goes through an :class:`Appender` (yielded)
     in place of its own appenders, which come back on exit. ``colour``:
     default, whether ``stream`` (stderr) is a terminal."""
-    stream_ = stream or sys.stderr
     if colour is None:
-        try:
-            colour = stream_.isatty()
-        except (AttributeError, ValueError):
-            colour = False
+        colour = progress.is_terminal(stream or sys.stderr)
     logger = mi.logger()
     own = [logger.appender(i) for i in range(logger.appender_count())]
     appender = Appender(stream, colour)

@@ -66,7 +66,7 @@ class Progress:
                  tty: bool | None = None, clock=time.perf_counter,
                  interval_s: float | None = None, log=None):
         self.stream = stream or sys.stderr
-        tty = _isatty(self.stream) if tty is None else tty
+        tty = is_terminal(self.stream) if tty is None else tty
         self.mode = None if enabled is False else "bar" if tty else "lines"
         self.enabled = self.mode is not None
         self.clock, self.log = clock, log
@@ -129,7 +129,8 @@ class Progress:
         self.stream.flush()
 
 
-def _isatty(stream) -> bool:
+def is_terminal(stream) -> bool:
+    """Whether ``stream`` is a terminal (False for a closed or file-less one)."""
     try:
         return stream.isatty()
     except (AttributeError, ValueError):     # (a closed or file-less stream)
