@@ -171,7 +171,12 @@ def _group(image: np.ndarray, what: str) -> tuple[str, np.ndarray]:
     if image.ndim != 3 or image.shape[2] not in _CHANNELS:
         raise ValueError(f"cannot store {what} of shape {image.shape} as EXR "
                          "(need (H, W, C) with C in 1, 3, 4)")
-    return _CHANNELS[image.shape[2]], np.ascontiguousarray(image)
+    group = _CHANNELS[image.shape[2]]
+    if image.shape[2] == 1:
+        # One channel goes to OpenEXR as (H, W): given (H, W, 1), OpenEXR 3.5
+        # writes three channels <name>.R/G/B, read past the array's end.
+        image = image[..., 0]
+    return group, np.ascontiguousarray(image)
 
 
 def write_exr(path: str | os.PathLike, image: np.ndarray, metadata: dict | None = None,
