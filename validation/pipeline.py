@@ -16,8 +16,10 @@ below), then the checks decide (:mod:`.checks`):
                        below, at the ladder's top rung; checks; then the
                        speed-and-images stage at the display resolution
                        (stages/speed.py): cost model → equal-time
-                       renders → reference → relMSE, efficiency, ranking, FLIP
-                       → images
+                       renders → reference → (where the profile asks: the
+                       budget axis, a tenth of a second to a minute,
+                       stages/budget_axis.py) → relMSE, efficiency,
+                       ranking, FLIP → images
     failure case       load → refusals → K seeds → reference (a black one
                        refused) → tail numbers →
                        bias test (sequential) → release → the sunless twin
@@ -57,7 +59,7 @@ from .plan import profiles, scenes, seeds, user_scenes
 from .results import layout
 from .run import executors, mitsuba_log, renders
 from .run.progress import Progress
-from .stages import cases, common, learning, quadrature, scene, speed, sun_split
+from .stages import budget_axis, cases, common, learning, quadrature, scene, speed, sun_split
 from .stages.context import Context, Run
 from .stats import metrics, statistics
 
@@ -67,7 +69,8 @@ SCENE = (common.load, common.choose_estimators, scene.render_ladder, common.buil
          sun_split.note_unsplit_sun, quadrature.measure, learning.measure, common.release,
          scene.save_images, sun_split.sunless_twin)
 SPEED = (speed.display, speed.time_costs, speed.render_budgets, speed.display_reference,
-         speed.release_display, speed.measure_speed, speed.save_display)
+         budget_axis.render_axis, speed.release_display, speed.measure_speed,
+         budget_axis.measure_axis, speed.save_display)
 CASE = (common.load, cases.probe_refusals, cases.render_seeds, common.build_reference,
         common.require_signal, cases.tail_numbers, cases.test_bias, common.release,
         sun_split.sunless_twin)
@@ -198,9 +201,9 @@ def validate(profile_name="quick", scene_names=None, estimators=None,
             for p, label in zip(files_given, _user_scene_labels(files_given))]
     notes = {plan.id: said for plan, said in user}
     plans = [r for r in profile.runs if "scenes" in groups
-             and (not names or r.scene in bundled)] + [plan for plan, _ in user]
+             and (not names or r.scene in bundled or r.id in bundled)] + [plan for plan, _ in user]
     case_plans = [c for c in profile.failures if "failures" in groups
-                  and (not names or c.scene in bundled)]
+                  and (not names or c.scene in bundled or c.label in bundled)]
     cache_dir = cache_dir or files.cache_dir()
     os.makedirs(out_dir, exist_ok=True)
     for d in (out_dir, cache_dir):   # left by a killed run (one writer at a time)

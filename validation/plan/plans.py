@@ -25,6 +25,15 @@ class Display:
     path_spp: tuple[int, ...] = (4, 8, 16)
     renders: int = 4               # K seeds per estimator and budget
     repeats: int = 5               # pilot renders per estimator at 1 and 16 spp
+    #: The budget axis (stages/budget_axis.py): seconds per render,
+    #: increasing; () leaves it out.
+    axis: tuple[float, ...] = ()
+    axis_renders: int = 2          # K per estimator and measured budget (≥ 2: a spread)
+    #: Fixed-pdf estimators are measured up to this many seconds and at the
+    #: next budget, which checks the model drawn beyond it; the estimators
+    #: of ``axis_measured`` and every learner are measured at every budget.
+    axis_model_above: float = 3.0
+    axis_measured: tuple[str, ...] = ("path", "mis")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -168,8 +177,9 @@ class Profile:
         return [*registry.names(), registry.REFERENCE]
 
     def check_scenes(self, names) -> None:
-        """Raise UsageError for a scene name the profile does not run."""
-        known = {r.scene for r in self.runs} | {c.scene for c in self.failures}
+        """Raise UsageError for a scene name (or label) the profile does not run."""
+        known = ({r.scene for r in self.runs} | {r.label for r in self.runs if r.label}
+                 | {c.scene for c in self.failures} | {c.label for c in self.failures if c.label})
         for name in names:
             if name not in known:
                 raise UsageError(f"scene '{name}' is not in profile '{self.name}' "

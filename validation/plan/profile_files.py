@@ -9,6 +9,7 @@ The format (quick.toml is a worked example; SCHEMA lists every key)::
     plugins = ["my_plugins.py"]     # optional: modules, or files
     [display]                       # the display stage of every scene run
     res = 128
+    axis = [0.1, 1, 10, 60]         # optional: the budget axis (stages/budget_axis.py)
     [user_scenes]                   # a scene given by path; display: [display]
     res = 16
     ladder = [4, 16, 64, 256]
@@ -69,7 +70,9 @@ SCHEMA = {
     "sequential": {"scene_budget": ("positive", False), "case_budget": ("positive", False),
                    "scene_epsilon": ("positive", False), "case_epsilon": ("positive", False)},
     "display": {"res": ("count", True), "path_spp": ("ladder", False),
-                "renders": ("count", False), "repeats": ("count", False)},
+                "renders": ("count", False), "repeats": ("count", False),
+                "axis": ("seconds", False), "axis_renders": ("spread", False),
+                "axis_model_above": ("positive", False), "axis_measured": ("names", False)},
     "user_scenes": {"res": ("count", True), "ladder": ("ladder", True),
                     "renders": ("count", True), "display": ("display", False),
                     "learning": ("flag", False)},
@@ -114,6 +117,9 @@ _PLAIN = {
     "numbers": (lambda v: _array(v, _is_number), "a non-empty array of numbers"),
     "group": (lambda v: v in FAILURE_GROUPS, "one of " + ", ".join(FAILURE_GROUPS)),
     "flag": (lambda v: isinstance(v, bool), "true or false"),
+    "seconds": (lambda v: _array(v, lambda x: _is_number(x) and x > 0),
+                "a non-empty array of numbers > 0 (seconds)"),
+    "spread": (lambda v: _is_int(v) and v >= 2, "an integer ≥ 2 (a spread needs two renders)"),
 }
 
 
@@ -131,8 +137,10 @@ def _value(kind: str, v, where: str):
         if not test(v):
             raise _Invalid(f"{where}: {v!r} is not {what}" if kind == "group" else
                            f"{where}: must be {what}, got {_show(v)}")
-        if kind == "ladder" and any(b <= a for a, b in itertools.pairwise(v)):
+        if kind in ("ladder", "seconds") and any(b <= a for a, b in itertools.pairwise(v)):
             raise _Invalid(f"{where}: must increase, got {v}")
+        if kind == "seconds":
+            return tuple(float(x) for x in v)
         return float(v) if kind == "positive" else tuple(v) if isinstance(v, list) else v
     if kind == "display":
         if v is False:                             # no display stage

@@ -100,7 +100,8 @@ STREAMS = {
     "sunless_replication": Layout(850_000, 10_000),
     "sequential": Layout(860_000, 1_000, blocks=20),
     "sunless_sequential": Layout(880_000, 1_000, blocks=20),
-    "bench": Layout(900_000, 99_999),
+    "bench": Layout(900_000, 49_999),
+    "budget_axis": Layout(950_000, 1_000, blocks=40),
     "compile": Layout(999_999, 1),
     "reference": Layout(1_000_000, 2 ** 32 - 1_000_000),
 }

@@ -37,8 +37,9 @@ def palette(results: Results) -> dict[str, str]:
             else spare[n] for n in names}
 
 
-def _finish(fig, ax, xlabel: str, ylabel: str, title: str) -> str:
-    """Label a log-log axis, grid and legend it, and return the figure as SVG."""
+def finish(fig, ax, xlabel: str, ylabel: str, title: str) -> str:
+    """Label a log-log axis, grid and legend it, and return the figure as SVG
+    (every chart of the report, report/axis.py's too)."""
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     ax.set_title(title)
@@ -173,7 +174,7 @@ def error_vs_time(scene: SceneResult, colours: dict) -> str:
                    label="the reference's own noise")
     ax.set_xscale("log")
     ax.set_yscale("log")
-    return _finish(fig, ax, f"wall time per render at {sp.res}² [ms] (budgets dotted)",
+    return finish(fig, ax, f"wall time per render at {sp.res}² [ms] (budgets dotted)",
                    "relMSE (ε = 0.01), 95 % interval", f"{scene.name}: accuracy vs time")
 
 
@@ -194,7 +195,7 @@ def error_vs_spp(scene: SceneResult, colours: dict) -> str:
         s0, e0, s1 = worst
         xs = np.array([s0, s1], float)
         ax.loglog(xs, e0 * (xs / s0) ** -1.0, "k--", lw=1, label="ideal slope −1")
-    return _finish(fig, ax, "samples per pixel", "relMSE (ε = 0.01)",
+    return finish(fig, ax, "samples per pixel", "relMSE (ε = 0.01)",
                    f"{scene.name}: convergence")
 
 
@@ -223,7 +224,7 @@ def settings_curve(q) -> str:
                   label=f"chosen: {st.mapping}, {st.noise:g}, ℓ = {st.length_scale:.2g}")
     ax.set_xticks([0.1, 0.2, 0.5, 1.0, 2.0], ["0.1", "0.2", "0.5", "1", "2"])
     ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
-    return _finish(fig, ax, "length scale ℓ (radians)",
+    return finish(fig, ax, "length scale ℓ (radians)",
                    f"held-out relMSE at {st.spp} spp",
                    f"{q.name}, N = {q.directions}: settings")
 
@@ -246,7 +247,7 @@ def learning_curve(learned, colours: dict) -> str:
     ax.set_yscale("log")
     ax.set_xticks(x, ["0" if p.training_spp == 0 else str(p.training_spp) for p in pts])
     ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
-    return _finish(fig, ax, "training samples per pixel before the image",
+    return finish(fig, ax, "training samples per pixel before the image",
                    "relMSE (ε = 0.01)", f"{learned.name}: learning")
 
 

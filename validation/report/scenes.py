@@ -1,6 +1,7 @@
 """The report's section of one scene comparison: the speed-and-images
 stage (equal-time images, error and FLIP maps, the worst region, accuracy
-against time), the small-image statistics and the quadrature stage."""
+against time), the budget axis (axis.py), the small-image statistics and
+the quadrature stage."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from mcillum import files, images
 from ..results import SceneResult, kinds_shown, layout, ranking_text, ratio_text, relmse_text
 from ..stats import metrics
 from . import charts
+from .axis import axis_section
 from .parts import ERROR_LEVELS, FLIP_LEVELS, fmt, map_colours, outcome, swatch, worst_window
 from .overview import evidence_anchor
 from .viewer import Shown, Test, packed, text_bytes, viewer
@@ -34,6 +36,7 @@ def scene_section(scene: SceneResult, run_dir: str, colours: dict,
 <p class=desc>{html.escape(scene.summary)}</p>
 {_notes(scene)}
 {speed}
+{axis_section(scene, colours) if scene.budget_axis else ""}
 {_statistics_section(scene, run_dir, colours, by_design)}
 {_quadrature_section(scene, colours) if scene.quadrature else ""}
 {_learning_section(scene, colours) if scene.learning else ""}

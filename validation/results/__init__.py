@@ -5,7 +5,7 @@ them. They import nothing of the pipeline. Only this package turns them into
 files and back:
 
 * records (kw-only dataclasses): :mod:`.common` (outcomes, a check),
-  :mod:`.scene`, :mod:`.speed`, :mod:`.quadrature`, :mod:`.learning` (a scene
+  :mod:`.scene`, :mod:`.speed`, :mod:`.axis`, :mod:`.quadrature`, :mod:`.learning` (a scene
   comparison),
   :mod:`.cases` (the failures group), :mod:`.run` (the whole run, versions);
 * :mod:`.json_io` — ``results.json`` both ways, and ``schema.json``;
@@ -15,6 +15,7 @@ files and back:
 Everything is re-exported here: ``results.load(run_dir)``, ``results.Check``.
 """
 
+from .axis import AxisBudget, AxisCrossing, AxisModel, AxisPoint, BudgetAxis  # noqa: F401
 from .cases import (BatchTest, CaseReference, CaseResult, CaseRow, Percentiles,  # noqa: F401
                     SppToMatch, SunSplit, Sweep, SweepRow, TailNumbers)
 from .common import OUTCOMES, Check, ReferenceSummary, having  # noqa: F401

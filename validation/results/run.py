@@ -58,7 +58,9 @@ VERSION = 1
 #: 20: an efficiency ratio's ``kind`` may be ``off_budget``: withheld (ratio
 #: and interval null) where a median wall time missed its budget beyond
 #: stages/budgets.py EQUAL_TIME, its ``reason`` saying by how much.
-MINOR_VERSION = 20
+#: 21: a scene may carry ``budget_axis``: relMSE against time per render
+#: from a tenth of a second to a minute (stages/budget_axis.py).
+MINOR_VERSION = 21
 
 
 @dataclass(kw_only=True)

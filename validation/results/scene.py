@@ -10,6 +10,7 @@ from .cases import SunSplit
 from .common import Outcome, ReferenceSummary, optional
 from .learning import Learning
 from .quadrature import Quadrature
+from .axis import BudgetAxis
 from .speed import Speed
 
 
@@ -121,6 +122,9 @@ class SceneResult:
     reference: ReferenceSummary
     estimators: list[EstimatorResult]
     speed: Speed | None = optional()
+    #: relMSE against time from a tenth of a second to a minute, where the
+    #: profile asks for it (stages/budget_axis.py; minor version 21).
+    budget_axis: BudgetAxis | None = optional()
     quadrature: list[Quadrature] | None = optional()
     #: Estimators that learn their pdf: error against training (minor version 11).
     learning: list[Learning] | None = optional()

@@ -79,6 +79,8 @@ def summary(results: Results) -> str:
                 + f" | {top.samples_per_second / 1e6:.2f} M | {top.efficiency:.3g} |")
         if scene.speed:
             lines += ["", *speed_summary(scene.speed)]
+        if scene.budget_axis:
+            lines += ["", *axis_summary(scene.budget_axis)]
         for q in scene.quadrature or []:
             lines += ["", quadrature_summary(q)]
         for learned in scene.learning or []:
@@ -210,6 +212,26 @@ def speed_summary(speed: Speed) -> list[str]:
                      f" | {ratio} |")
     return lines + [f"- {n}" for n in speed.notes] + \
         [f"- efficiency: {k}: {v}" for k, v in kinds_shown(speed).items()]
+
+
+def axis_summary(axis) -> list[str]:
+    """The budget axis's lines of summary.md: efficiency ÷ path per budget,
+    then its crossings, leaders and notes (stages/budget_axis.py)."""
+    names = [n for n in axis.curves if n != "path"]
+    lines = [f"Budgets from {axis.budgets[0]:g} s to {axis.budgets[-1]:g} s per render at "
+             f"{axis.res}² (K = {axis.renders}): efficiency ÷ path [95% CI]; (model): drawn "
+             "from the estimator's checked model c/(t − t0).", "",
+             "| budget | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
+    for b in axis.budgets:
+        cells = []
+        for n in names:
+            p = next((p for p in axis.curves[n] if p.budget == b), None)
+            cells.append("—" if p is None or p.efficiency_vs_path is None else
+                         f"{p.efficiency_vs_path:.3g} [{p.efficiency_vs_path_ci.low:.3g}, "
+                         f"{p.efficiency_vs_path_ci.high:.3g}]" + ("" if p.measured else
+                                                                   " (model)"))
+        lines.append(f"| {b:g} s | " + " | ".join(cells) + " |")
+    return lines + [f"- {n}" for n in axis.notes]
 
 
 def kinds_shown(speed: Speed) -> dict[str, str]:

@@ -113,6 +113,11 @@ class Context:
     flip_maps: dict = field(default_factory=dict)     # speed.measure_speed: name → (H, W)
     timed_on: list = field(default_factory=list)      # speed.render_budgets: nodes that timed
     notes: list = field(default_factory=list)         # speed.*: what did not hold
+    #: budget_axis.render_axis: name → [(budget, Stack, [Try])] of its measured budgets
+    axis_renders: dict = field(default_factory=dict)
+    axis_notes: list = field(default_factory=list)    # budget_axis.*: what did not hold
+    axis_models: dict = field(default_factory=dict)   # budget_axis.render_axis: name → AxisModel
+    budget_axis: object = None      # budget_axis.measure_axis: results.BudgetAxis
     #: pipeline, choose_estimators: what a user's scene's result says (its
     #: settings and film, estimators that do not render it, settings not taken)
     scene_notes: list = field(default_factory=list)

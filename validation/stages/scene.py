@@ -274,6 +274,6 @@ def scene_result(ctx) -> SceneResult:
         summary=scene_summary(ctx), res=ctx.res, max_depth=ctx.max_depth,
         ladder=list(ctx.plan.ladder), renders=ctx.plan.renders,
         reference=reference_summary(ctx.reference), estimators=list(ctx.measured.values()),
-        speed=ctx.speed, quadrature=list(ctx.quadrature.values()) or None,
+        speed=ctx.speed, budget_axis=ctx.budget_axis, quadrature=list(ctx.quadrature.values()) or None,
         learning=list(ctx.learning.values()) or None,
         notes=list(ctx.scene_notes) or None)
