@@ -134,7 +134,8 @@ def test_the_axis_on_a_users_scene_reads_a_known_efficiency(tmp_path):
     same error at twice the time, so its efficiency ÷ path is ½ at every
     budget. cosine_hemisphere, fixed-pdf, is measured up to the model's
     budget and at the next, and drawn from its model above where they
-    agree. The report and summary show the axis."""
+    agree. The report and summary show the axis; a re-run into the same
+    directory renders the axis no more and reports the same figures."""
     from mcillum.validation import cli
     code = tmp_path / "code" / "twice_path.py"
     code.parent.mkdir()
@@ -150,11 +151,21 @@ def test_the_axis_on_a_users_scene_reads_a_known_efficiency(tmp_path):
         'axis_measured = ["path", "twice_path"]\n'
         '[user_scenes]\nres = 8\nladder = [4, 16]\nrenders = 4\n')
     out = tmp_path / "out"
-    code_ = cli.main(["validate", scene, "--profile", str(profile), "--plugin", str(code),
-                      "--estimators", "twice_path", "cosine_hemisphere", "--out", str(out),
-                      "--quiet"])
-    assert code_ in (0, 1)          # (the statistics' verdicts are not this test's)
+    args = ["validate", scene, "--profile", str(profile), "--plugin", str(code),
+            "--estimators", "twice_path", "cosine_hemisphere", "--out", str(out), "--quiet",
+            "--define", "res=64"]   # (a 64² film: its display, 32², is the profile's)
+    assert cli.main(args) in (0, 1)     # (the statistics' verdicts are not this test's)
     result = json.load(open(out / "results.json"))
+    assert cli.main(args) in (0, 1)
+    again = json.load(open(out / "results.json"))
+    # (the renders and their times kept; relMSE through the reference, which
+    # the second run reads back from its cache file, to float precision)
+    for name, points in result["scenes"][0]["budget_axis"]["curves"].items():
+        kept = again["scenes"][0]["budget_axis"]["curves"][name]
+        assert [(p["spp"], p["wall_seconds"]) for p in kept if p["measured"]] == \
+            [(p["spp"], p["wall_seconds"]) for p in points if p["measured"]]
+        assert [p["relmse"] for p in kept] == pytest.approx([p["relmse"] for p in points],
+                                                             rel=1e-6)
     (s,) = result["scenes"]
     a = s["budget_axis"]
     assert a["budgets"] == [0.03, 0.06, 0.12, 0.25]

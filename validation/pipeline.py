@@ -214,7 +214,8 @@ def validate(profile_name="quick", scene_names=None, estimators=None,
                 quadrature.planned_renders(at_depth(estimators, r), r.renders) +
                 learning.planned_renders(at_depth(estimators, r), r.renders, r)
                 for r in plans) + \
-        sum(r.display.renders * len(at_depth(estimators, r)) * len(r.display.path_spp)
+        sum(r.display.renders * len(at_depth(estimators, r)) * len(r.display.path_spp) +
+            budget_axis.planned_renders(at_depth(estimators, r), r.display)
             for r in plans if r.display and speed_stage) + \
         sum(c.seeds * len(at_depth(cases_estimators, c)) *
             max(1, len(c.sweep[1]) if c.sweep else 1)

@@ -27,21 +27,31 @@ Its stages, in order:
                    ÷ path at each budget, a ranking per budget, and where
                    an estimator's ratio crosses 1 → ctx.budget_axis.
 
-Renders are not kept: a re-run renders the axis again.
+The renders and their times are kept in the run directory
+(``renders/<scene>/axis.npz``) under a key (scene content, estimators, the
+display plan): a re-run into a finished directory renders nothing, and
+reports the first run's times.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
+import json
 import math
+import os
 
 import numpy as np
+
+from mcillum import files
 
 from mcillum.integrators.core import registry
 
 from ..plan import seeds
 from ..results import (AxisBudget, AxisCrossing, AxisModel, AxisPoint, BudgetAxis, Interval,
-                       Try)
+                       Try, layout)
 from ..run import load, stacks
+from ..run.stacks import Stack
 from ..stats import axis, costs
 from .budgets import CORRECTIONS, EQUAL_TIME, ON_BUDGET, REFERENCE, corrected
 
@@ -54,11 +64,18 @@ CHEAP = 10.0
 #: MAX_RENDERS: a tighter spread for little time.
 SMALL_SECONDS = 1.0
 MAX_RENDERS = 8
+CACHE_VERSION = 1
 
 
 def renders_at(budget: float, k: int) -> int:
     """Renders at ``budget`` seconds: ``k``, more below SMALL_SECONDS."""
     return max(k, min(MAX_RENDERS, math.ceil(SMALL_SECONDS / budget)))
+
+
+def planned_renders(estimators, display) -> int:
+    """The axis's renders if every estimator rendered every budget once (no
+    corrections; fewer where a model draws a point): the progress bar's."""
+    return len(estimators) * sum(renders_at(t, display.axis_renders) for t in display.axis)
 
 
 def seconds_text(t: float) -> str:
@@ -72,6 +89,8 @@ def render_axis(ctx) -> None:
     """K timed renders per estimator and budget of the axis (module doc)."""
     d = ctx.plan.display
     if not d.axis:
+        return
+    if _load_cache(ctx):
         return
     sub = ctx.display
     names = list(sub.integrators)
@@ -98,6 +117,7 @@ def render_axis(ctx) -> None:
             for n in names:
                 if n not in always and ctx.axis_renders[n]:
                     models[n] = _checked_model(ctx, n, r, d.axis_model_above, budget)
+    _save_cache(ctx)
 
 
 def _first_spp(ctx, name: str, budget: float) -> int | None:
@@ -190,6 +210,53 @@ def _estimate(ctx, name: str, stack, r) -> axis.Estimate:
         return axis.spread_relmse(stack.images, r)
     ref = ctx.display.reference
     return axis.error_relmse(stack.images, r, ref.variance_of_mean)
+
+
+# ---------------------------------- Cache ----------------------------------------
+
+def _cache_file(ctx) -> tuple[str, str]:
+    sub = ctx.display
+    key = hashlib.sha256(json.dumps(
+        [sub.render_key, list(sub.integrators), dataclasses.asdict(ctx.plan.display),
+         seeds.seed_set(), CACHE_VERSION]).encode()).hexdigest()[:24]
+    return layout.kept_renders(ctx.run.out_dir, ctx.id, "axis"), key
+
+
+def _load_cache(ctx) -> bool:
+    """The kept renders, models and notes of an earlier run of this axis;
+    False where there are none (absent, partial, another key)."""
+    path, key = _cache_file(ctx)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if str(z["key"]) != key:
+                return False
+            meta = json.loads(str(z["meta"]))
+            renders = {n: [(b, Stack(n, spp, z[f"images_{n}_{i}"], list(seconds)),
+                            [Try(**t) for t in tries])
+                           for i, (b, spp, seconds, tries) in enumerate(points)]
+                       for n, points in meta["renders"].items()}
+    except Exception:  # absent, partial or from another version: render anew
+        return False
+    ctx.axis_renders = renders
+    ctx.axis_models = {n: AxisModel(**m) for n, m in meta["models"].items()}
+    ctx.axis_notes = list(meta["notes"])
+    ctx.run.step(f"{ctx.id} budget axis: loaded", 0)
+    return True
+
+
+def _save_cache(ctx) -> None:
+    path, key = _cache_file(ctx)
+    arrays = {"key": key, "meta": json.dumps({
+        "renders": {n: [[b, s.spp, [float(x) for x in s.seconds],
+                         [dataclasses.asdict(t) for t in tries]] for b, s, tries in points]
+                    for n, points in ctx.axis_renders.items()},
+        "models": {n: dataclasses.asdict(m) for n, m in ctx.axis_models.items()},
+        "notes": ctx.axis_notes})}
+    for n, points in ctx.axis_renders.items():
+        for i, (_, s, _) in enumerate(points):
+            arrays[f"images_{n}_{i}"] = s.images
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    files.write_arrays(path, arrays)
 
 
 # --------------------------------- Numbers ---------------------------------------
