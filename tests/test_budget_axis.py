@@ -85,18 +85,21 @@ def test_the_model_is_recovered_and_checks_a_point():
     assert axis.agrees(model, 3.0, on) and not axis.agrees(model, 3.0, off)
 
 
-def test_crossings_are_found_between_budgets_and_only_there():
+def test_a_crossing_needs_both_sides_resolved_and_is_placed_where_the_ratio_passes_1():
     budgets = [1, 3, 10, 30]
     ci = Interval
-    ratios = [(0.5, ci(0.4, 0.6)), (0.8, ci(0.6, 1.1)), (2.0, ci(1.5, 2.6)),
+    ratios = [(0.5, ci(0.4, 0.6)), (0.8, ci(0.6, 1.1)), (2.0, ci(0.9, 2.6)),
               (3.0, ci(2.0, 4.0))]
     (c,) = axis.crossings("g", budgets, ratios)
-    assert 3 < c.seconds < 10 and c.overtakes and not c.resolved
+    assert c.overtakes and (c.behind_at, c.ahead_at) == (1, 30)
     # (log-log: 0.8 at 3 s, 2 at 10 s → 1 at 3·(10/3)^(ln 1.25 / ln 2.5))
     assert c.seconds == pytest.approx(3 * (10 / 3) ** (math.log(1.25) / math.log(2.5)))
+    # (ties alone, however their point values swing: no crossing)
+    swing = [(0.8, ci(0.5, 1.2)), (1.3, ci(0.9, 1.8)), (0.9, ci(0.6, 1.3))]
+    assert axis.crossings("g", [1, 3, 10], swing) == []
     assert axis.crossings("g", budgets, [(0.5, ci(0.4, 0.6))] * 4) == []
     (back,) = axis.crossings("g", [1, 3], [(1.5, ci(1.2, 1.8)), (0.5, ci(0.4, 0.6))])
-    assert not back.overtakes and back.resolved
+    assert not back.overtakes and (back.behind_at, back.ahead_at) == (3, 1)
 
 
 # ------------------------------- The profile keys -------------------------------

@@ -45,13 +45,15 @@ class AxisModel:
 
 @dataclass(kw_only=True)
 class AxisCrossing:
-    """Where an estimator's efficiency ÷ path passes 1 (log-log
-    interpolation between the budgets on either side)."""
+    """Where an estimator's efficiency ÷ path changes sides: behind path
+    (its interval below 1) at one budget, ahead (above 1) at another, ties
+    between; ``seconds`` where the ratio passes 1 (stats/axis.py)."""
 
     estimator: str
     seconds: float
     overtakes: bool                     # True: better than path above it
-    resolved: bool                      # both sides' intervals exclude 1
+    behind_at: float                    # a budget where its interval lies below 1
+    ahead_at: float                     # ... and one where it lies above, ties between
     text: str
 
 

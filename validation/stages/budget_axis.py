@@ -334,10 +334,12 @@ def _compare(curves: dict, budgets) -> tuple[list[AxisBudget], list[AxisCrossing
                   if p.efficiency_vs_path is not None else None for p in ps]
         for c in axis.crossings(n, [p.budget for p in ps], ratios):
             verb = "overtakes" if c.overtakes else "falls behind"
-            hedge = "" if c.resolved else " (within the intervals on one side)"
+            sides = (f"behind at {seconds_text(c.behind_at)}, ahead at "
+                     f"{seconds_text(c.ahead_at)}")
             crossings.append(AxisCrossing(
-                estimator=n, seconds=c.seconds, overtakes=c.overtakes, resolved=c.resolved,
-                text=f"{n} {verb} path at about {seconds_text(c.seconds)}{hedge}"))
+                estimator=n, seconds=c.seconds, overtakes=c.overtakes, behind_at=c.behind_at,
+                ahead_at=c.ahead_at,
+                text=f"{n} {verb} path at about {seconds_text(c.seconds)} ({sides}, 95 %)"))
     return rankings, crossings
 
 

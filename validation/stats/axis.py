@@ -157,26 +157,41 @@ def ratio(relmse: float, seconds: float, log_se: float, base_relmse: float,
 
 
 class Crossing(typing.NamedTuple):
-    """Where an estimator's efficiency ÷ a base's passes 1 between two
-    budgets: ``seconds`` by log-log interpolation of the ratio; ``resolved``
-    where the ratio's interval excludes 1 on both sides."""
+    """Where an estimator's efficiency ÷ a base's changes sides: from
+    behind (the ratio's interval below 1) at ``behind_at`` to ahead (above
+    1) at ``ahead_at``, or back, with ties between; ``seconds`` where the
+    ratio passes 1 in between (log-log interpolation at its last change of
+    sign there)."""
 
     estimator: str
     seconds: float
-    overtakes: bool        # True: better than the base above ``seconds``
-    resolved: bool
+    overtakes: bool        # True: behind before ``seconds``, ahead after
+    behind_at: float
+    ahead_at: float
+
+
+def _side(ci: Interval) -> int:
+    """+1 ahead (interval above 1), −1 behind (below), 0 a tie."""
+    return 1 if ci.low > 1 else -1 if ci.high < 1 else 0
 
 
 def crossings(name: str, budgets, ratios) -> list[Crossing]:
     """The crossings of ``name``'s efficiency ratios (value, Interval) at
-    increasing ``budgets`` (seconds; None where it has no ratio)."""
-    found = []
+    increasing ``budgets`` (seconds; None where it has no ratio): each pair
+    of budgets whose intervals lie on opposite sides of 1 with only ties
+    between. A sign change of the ratio among ties alone is noise, not a
+    crossing."""
     points = [(b, r) for b, r in zip(budgets, ratios) if r is not None and r[0] > 0]
-    for (b0, (v0, c0)), (b1, (v1, c1)) in zip(points, points[1:]):
-        if (v0 < 1) == (v1 < 1) or v0 == 1:
+    sided = [(i, _side(ci)) for i, (_, (_, ci)) in enumerate(points) if _side(ci)]
+    found = []
+    for (i, a), (j, b) in zip(sided, sided[1:]):
+        if a == b:
             continue
-        l0, l1 = math.log(v0), math.log(v1)
-        at = math.exp(math.log(b0) + (math.log(b1) - math.log(b0)) * l0 / (l0 - l1))
-        resolved = (c0.high < 1 or c0.low > 1) and (c1.high < 1 or c1.low > 1)
-        found.append(Crossing(name, at, v1 > 1, resolved))
+        at = points[j][0]
+        for (b0, (v0, _)), (b1, (v1, _)) in zip(points[i:j], points[i + 1:j + 1]):
+            if (v0 < 1) != (v1 < 1):
+                l0, l1 = math.log(v0), math.log(v1)
+                at = math.exp(math.log(b0) + (math.log(b1) - math.log(b0)) * l0 / (l0 - l1))
+        found.append(Crossing(name, at, b > 0, points[i if a < 0 else j][0],
+                              points[j if a < 0 else i][0]))
     return found
