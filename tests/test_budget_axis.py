@@ -122,6 +122,7 @@ def test_the_axis_is_read_from_a_profile_file(tmp_path):
 @pytest.mark.parametrize("text, said", [
     ("axis = [1, 0.5]", "must increase"),
     ("axis = [0, 1]", "numbers > 0"),
+    ("axis = [0.1, 0.1]", "must increase"),
     ("axis_renders = 1", "a spread needs two renders"),
 ])
 def test_a_wrong_axis_is_named(tmp_path, text, said):

@@ -31,8 +31,8 @@ def bundled_path(name: str) -> str:
 
 
 def test_the_bundled_profiles_are_the_files():
-    assert profile_files.BUNDLED == ("full", "quick")
-    assert sorted(profiles.PROFILES) == ["full", "quick"]
+    assert profile_files.BUNDLED == ("budgets", "full", "quick")
+    assert sorted(profiles.PROFILES) == ["budgets", "full", "quick"]
     for name, profile in profiles.PROFILES.items():
         assert profile.name == name                    # the file's name is its profile's
         assert profile.source == bundled_path(name)

@@ -117,8 +117,8 @@ _PLAIN = {
     "numbers": (lambda v: _array(v, _is_number), "a non-empty array of numbers"),
     "group": (lambda v: v in FAILURE_GROUPS, "one of " + ", ".join(FAILURE_GROUPS)),
     "flag": (lambda v: isinstance(v, bool), "true or false"),
-    "seconds": (lambda v: _array(v, lambda x: _is_number(x) and x > 0),
-                "a non-empty array of numbers > 0 (seconds)"),
+    "seconds": (lambda v: v == [] or _array(v, lambda x: _is_number(x) and x > 0),
+                "an array of numbers > 0 (seconds; [] for none)"),
     "spread": (lambda v: _is_int(v) and v >= 2, "an integer ≥ 2 (a spread needs two renders)"),
 }
 

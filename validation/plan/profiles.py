@@ -31,8 +31,10 @@ GEOMETRY = ("edge_grazing", "edge_backface", "edge_shading_normals", "edge_thin"
 
 QUICK = profile_files.bundled("quick")
 FULL = profile_files.bundled("full")
+#: Accuracy against time from a tenth of a second to a minute (stages/budget_axis.py).
+BUDGETS = profile_files.bundled("budgets")
 
-PROFILES = {p.name: p for p in (QUICK, FULL)}
+PROFILES = {p.name: p for p in (QUICK, FULL, BUDGETS)}
 
 
 def resolve(spec) -> Profile:

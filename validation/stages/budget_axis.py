@@ -53,7 +53,7 @@ from ..results import (AxisBudget, AxisCrossing, AxisModel, AxisPoint, BudgetAxi
 from ..run import load, stacks
 from ..run.stacks import Stack
 from ..stats import axis, costs
-from .budgets import CORRECTIONS, EQUAL_TIME, ON_BUDGET, REFERENCE, corrected
+from .budgets import CORRECTIONS, EQUAL_TIME, REFERENCE, corrected
 
 #: Seconds of renders (K × the budget) below which a set that missed its
 #: budget is corrected as the speed stage's are; above it, once, and only

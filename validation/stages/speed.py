@@ -51,16 +51,14 @@ in a sub-context of the scene's (``ctx.display``). Its stages, in order:
                        its first render at the largest budget with its FLIP map
 
 Timings and renders are kept in the run directory (``renders/<scene>/speed.npz``,
-results/layout.py) under a key
-(scene content, estimators, settings): a re-run into a finished directory
-renders nothing; the timings it reports are the first run's.
+results/layout.py; speed_cache.py) under a key (scene content, estimators,
+settings): a re-run into a finished directory renders nothing; the timings
+it reports are the first run's.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 import math
 import os
 
@@ -74,9 +72,8 @@ from ..results import Budget, BudgetRun, Interval, Ratio, Speed, Try, layout
 from ..run import load, probe, references, timing
 from ..run.stacks import Stack
 from ..stats import costs, metrics, tails
-from . import budgets, common
-from .budgets import (EQUAL_TIME, LOADED, MAX_SCALE, MIN_BUDGET, MIN_LEARNER_SPP, MIN_SPP,
-                      ON_BUDGET, REFERENCE, budget_spp, equal_time, load_se)
+from . import budgets, common, speed_cache
+from .budgets import EQUAL_TIME, LOADED, ON_BUDGET, REFERENCE, budget_spp, equal_time, load_se
 from .budgets import job as _job
 
 PILOT_SPP = (1, 16)
@@ -94,7 +91,7 @@ def display(ctx) -> None:
     common.load(sub)
     sub.integrators = dict(ctx.integrators)           # (integrators hold no scene)
     ctx.display = sub
-    _load_cache(ctx)
+    speed_cache.load(ctx, [PILOT_SPP, CACHE_VERSION])
 
 
 def time_costs(ctx) -> None:
@@ -129,7 +126,7 @@ def render_budgets(ctx) -> None:
     """K timed renders per estimator at every budget, met by correction
     (stages/budgets.py), kept in the run directory; or the kept ones."""
     if budgets.render(ctx):
-        _save_cache(ctx)
+        speed_cache.save(ctx, [PILOT_SPP, CACHE_VERSION])
 
 
 # -------------------------------- Reference --------------------------------------
@@ -365,56 +362,3 @@ def save_display(ctx) -> None:
 def release_display(ctx) -> None:
     """The display scene is rendered no more (common.release)."""
     common.release(ctx.display)
-
-
-# ---------------------------------- Cache ----------------------------------------
-
-def _cache_file(ctx) -> tuple[str, str]:
-    sub, d = ctx.display, ctx.plan.display
-    key = hashlib.sha256(json.dumps(
-        [sub.render_key, list(sub.integrators), dataclasses.asdict(d), PILOT_SPP,
-         MAX_SCALE, MIN_SPP, MIN_BUDGET, MIN_LEARNER_SPP, CACHE_VERSION]
-    ).encode()).hexdigest()[:24]
-    return layout.kept_renders(ctx.run.out_dir, ctx.id, "speed"), key
-
-
-def _load_cache(ctx) -> None:
-    path, key = _cache_file(ctx)
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            if str(z["key"]) != key:
-                return
-            meta = json.loads(str(z["meta"]))
-            found = [{n: Stack(n, spp, z[f"images_{j}_{i}"], z[f"seconds_{j}_{i}"].tolist())
-                      for i, (n, spp) in enumerate(budget)}
-                     for j, budget in enumerate(meta["spp"])]
-    except Exception:  # absent, partial or from another version: time and render anew
-        return
-    ctx.timings = {n: {int(s): t for s, t in v.items()} for n, v in meta["timings"].items()}
-    ctx.budget_path_spp = [int(x) for x in meta["path_spp"]]
-    ctx.budget_stacks = found
-    ctx.budget_tries = [{n: [Try(**t) for t in ts] for n, ts in tries.items()}
-                        for tries in meta["tries"]]
-    ctx.timing_load = [tuple(x) for x in meta["timing_load"]]
-    ctx.timed_on = list(meta.get("timed_on", []))
-    loaded = len(found) * ctx.plan.display.renders * len(ctx.display.integrators)
-    ctx.run.step(f"{ctx.id} speed stage: loaded", loaded)
-    ctx.run.kept += loaded
-
-
-def _save_cache(ctx) -> None:
-    path, key = _cache_file(ctx)
-    arrays = {"key": key, "meta": json.dumps({
-        "timings": {n: {str(s): t for s, t in v.items()} for n, v in ctx.timings.items()},
-        "path_spp": ctx.budget_path_spp,
-        "timed_on": ctx.timed_on,
-        "tries": [{n: [dataclasses.asdict(t) for t in ts] for n, ts in tries.items()}
-                  for tries in ctx.budget_tries],
-        "timing_load": [list(x) for x in ctx.timing_load],
-        "spp": [[[n, u.spp] for n, u in by_name.items()] for by_name in ctx.budget_stacks]})}
-    for j, by_name in enumerate(ctx.budget_stacks):
-        for i, u in enumerate(by_name.values()):
-            arrays[f"images_{j}_{i}"] = u.images
-            arrays[f"seconds_{j}_{i}"] = np.asarray(u.seconds)
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    files.write_arrays(path, arrays)
