@@ -87,19 +87,41 @@ def test_the_model_is_recovered_and_checks_a_point():
 
 def test_a_crossing_needs_both_sides_resolved_and_is_placed_where_the_ratio_passes_1():
     budgets = [1, 3, 10, 30]
-    ci = Interval
-    ratios = [(0.5, ci(0.4, 0.6)), (0.8, ci(0.6, 1.1)), (2.0, ci(0.9, 2.6)),
-              (3.0, ci(2.0, 4.0))]
+    ratios = [(0.5, 0.1), (0.8, 0.2), (2.0, 0.5), (3.0, 0.1)]
     (c,) = axis.crossings("g", budgets, ratios)
     assert c.overtakes and (c.behind_at, c.ahead_at) == (1, 30)
     # (log-log: 0.8 at 3 s, 2 at 10 s → 1 at 3·(10/3)^(ln 1.25 / ln 2.5))
     assert c.seconds == pytest.approx(3 * (10 / 3) ** (math.log(1.25) / math.log(2.5)))
     # (ties alone, however their point values swing: no crossing)
-    swing = [(0.8, ci(0.5, 1.2)), (1.3, ci(0.9, 1.8)), (0.9, ci(0.6, 1.3))]
-    assert axis.crossings("g", [1, 3, 10], swing) == []
-    assert axis.crossings("g", budgets, [(0.5, ci(0.4, 0.6))] * 4) == []
-    (back,) = axis.crossings("g", [1, 3], [(1.5, ci(1.2, 1.8)), (0.5, ci(0.4, 0.6))])
+    assert axis.crossings("g", [1, 3, 10], [(0.8, 0.2), (1.3, 0.2), (0.9, 0.2)]) == []
+    assert axis.crossings("g", budgets, [(0.5, 0.1)] * 4) == []
+    (back,) = axis.crossings("g", [1, 3], [(1.5, 0.1), (0.5, 0.1)])
     assert not back.overtakes and (back.behind_at, back.ahead_at) == (3, 1)
+
+
+def test_the_crossing_rule_false_and_true_rates():
+    """The rule's two measurements on seven budgets, each ratio read with a
+    log-scale error of ``se`` (what a budget's intervals state): two equal
+    estimators (truth 1 everywhere) read a crossing in under 0.5 % of 2 000
+    scenes (measured 0.05-0.2 % on 4 000); an estimator going from ½× to
+    2× path (a real crossing) is named in nearly all at se = 0.1 (±22 % at
+    95 %) and in 80 % at se = 0.2 (±48 %; 27 % at 0.3: intervals that wide
+    need a larger change, as guided_path's 0.75× to 2.7× on
+    sunlit_room_hole, or more renders)."""
+    rng = np.random.default_rng(2026)
+    budgets = [0.1, 0.3, 1, 3, 10, 30, 60]
+    truth = np.exp(np.linspace(math.log(0.5), math.log(2.0), len(budgets)))
+
+    def named(true_ratios, se) -> float:
+        hits = 0
+        for _ in range(2000):
+            read = true_ratios * np.exp(se * rng.standard_normal(len(budgets)))
+            hits += bool(axis.crossings("x", budgets, [(v, se) for v in read]))
+        return hits / 2000
+
+    assert named(np.ones(len(budgets)), 0.2) < 0.005
+    assert named(truth, 0.1) > 0.95
+    assert named(truth, 0.2) > 0.7
 
 
 # ------------------------------- The profile keys -------------------------------

@@ -330,7 +330,7 @@ def _compare(curves: dict, budgets) -> tuple[list[AxisBudget], list[AxisCrossing
     for n, ps in curves.items():
         if n == REFERENCE:
             continue
-        ratios = [(p.efficiency_vs_path, p.efficiency_vs_path_ci)
+        ratios = [(p.efficiency_vs_path, math.hypot(p.log_se, base[p.budget].log_se))
                   if p.efficiency_vs_path is not None else None for p in ps]
         for c in axis.crossings(n, [p.budget for p in ps], ratios):
             verb = "overtakes" if c.overtakes else "falls behind"
@@ -339,7 +339,7 @@ def _compare(curves: dict, budgets) -> tuple[list[AxisBudget], list[AxisCrossing
             crossings.append(AxisCrossing(
                 estimator=n, seconds=c.seconds, overtakes=c.overtakes, behind_at=c.behind_at,
                 ahead_at=c.ahead_at,
-                text=f"{n} {verb} path at about {seconds_text(c.seconds)} ({sides}, 95 %)"))
+                text=f"{n} {verb} path at about {seconds_text(c.seconds)} ({sides}, 99 %)"))
     return rankings, crossings
 
 
