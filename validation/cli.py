@@ -23,7 +23,7 @@ from mcillum.envmaps import catalog
 from mcillum.integrators.core import registry
 
 from . import arguments, results
-from .plan import profiles, scenes
+from .plan import profiles, scenes, seeds
 from .results import layout
 from .run import executors, jobs, renders, timing
 
@@ -144,8 +144,10 @@ def _validate(args) -> int:
                      "files given by path; the profile's scenes have their own")
     if args.res is not None and args.res < 1:
         raise _Usage(f"--res must be >= 1, got {args.res}")
-    if not 0 <= args.seed_set < 1000:
-        raise _Usage(f"--seed-set must be in 0…999, got {args.seed_set}")
+    try:
+        seeds.check_set(args.seed_set)
+    except ValueError:
+        raise _Usage(f"--seed-set must be in 0…{seeds.SETS - 1}, got {args.seed_set}") from None
     if args.budget is not None and not args.budget >= 1:
         raise _Usage(f"--budget must be >= 1 (× a check's first samples), got {args.budget}")
     if args.executor != "ray" and (args.ray_address or args.ray_workers is not None):

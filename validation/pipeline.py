@@ -208,7 +208,7 @@ def validate(profile_name="quick", scene_names=None, estimators=None,
     elif variant is not None or plugins:
         raise ValueError("give either setup or variant and plugins, not both")
     variant, loaded = setup.variant, setup.plugins
-    seeds.use_set(seed_set)
+    seed_set = seeds.check_set(seed_set)
     estimators = list(estimators or profile.estimator_names())
     cases_estimators = list(dict.fromkeys([*estimators, registry.REFERENCE]))
     names = list(scene_names or [])
@@ -244,7 +244,7 @@ def validate(profile_name="quick", scene_names=None, estimators=None,
         with start_executor(executor, ray_address, ray_workers, variant, loaded) as ex, \
                 mitsuba_log.plain() as log:
             bar = Progress(total, progress, log=log)
-            run = Run(profile, variant, cache_dir, out_dir, bar, ex, budget)
+            run = Run(profile, variant, cache_dir, out_dir, bar, ex, budget, seed_set=seed_set)
             try:
                 for plan in plans:
                     result, found = compare_scene(run, plan, estimators, speed_stage,

@@ -34,7 +34,7 @@ import numpy as np
 
 from mcillum import files
 
-from ..plan import scenes, seeds
+from ..plan import scenes
 from ..stats import metrics
 from ..stats.statistics import Moments
 from . import jobs, renders
@@ -135,10 +135,11 @@ def _filled_by():
 
 
 def cache_key(scene_path: str, defines: dict, params: dict, variant: str,
-              film: tuple[int, int] | None = None, code=None) -> str:
+              film: tuple[int, int] | None = None, code=None, seed_set: int = 0) -> str:
     """A hash of everything that decides a reference of the scene: its files'
-    bytes, $-parameters, integrator parameters, variant, versions and the
-    code of ``code`` (default: the modules that fill a reference)."""
+    bytes, $-parameters, integrator parameters, variant, versions, the
+    code of ``code`` (default: the modules that fill a reference) and the
+    seed set."""
     h = hashlib.sha256()
     for path in scenes.referenced_files(scene_path, defines):
         h.update(os.path.basename(path).encode())
@@ -150,17 +151,17 @@ def cache_key(scene_path: str, defines: dict, params: dict, variant: str,
             "code": files.code_hash(*(code if code is not None else _filled_by()))}
     if film is not None:                  # a user's scene at a reduced film
         desc["film"] = list(film)
-    if seeds.seed_set():                  # another independent repeat (plan/seeds.py)
-        desc["seed_set"] = seeds.seed_set()
+    if seed_set:                          # another independent repeat (plan/seeds.py)
+        desc["seed_set"] = seed_set
     h.update(json.dumps(desc, sort_keys=True, default=str).encode())
     return h.hexdigest()[:32]
 
 
 def render_key(scene_path: str, defines: dict, params: dict, variant: str,
-               film: tuple[int, int] | None = None) -> str:
+               film: tuple[int, int] | None = None, seed_set: int = 0) -> str:
     """:func:`cache_key` over the code of an estimator's renders only: the
     key of the renders a run directory keeps (run/stacks.py)."""
-    return cache_key(scene_path, defines, params, variant, film, _renders_by())
+    return cache_key(scene_path, defines, params, variant, film, _renders_by(), seed_set)
 
 
 # ------------------------------ Cache files ----------------------------------
@@ -328,7 +329,7 @@ def ensure(ctx, target: float, expected: float = 0.0,
     spp_per_pass = ref.spp_per_pass if ref is not None else \
         pass_spp(profile.reference_spp_per_pass, int(w) * int(h), max_spp, expected, wanted)
     integrator = jobs.make("path", ctx.params)
-    stream = seeds.stream("reference")
+    stream = ctx.run.stream("reference")
     start, rendered = time.perf_counter(), 0
 
     def need_more(r):

@@ -21,7 +21,6 @@ import numpy as np
 
 from mcillum.integrators.core import registry
 
-from ..plan import seeds
 from ..results import Try
 from ..run import load, stacks, timing
 from ..stats import costs
@@ -150,7 +149,7 @@ def render(ctx) -> bool:
     # interval. A timed render that compiles anyway, as guided_path's at a
     # new spp, is rendered again: run/renders.timed_render)
     warmed = {n: max(s[n] for s in spps if n in s) for n in spps[-1]}
-    timing.warm(sub.run.executor, job(sub), warmed, seeds.stream("speed_timing").seed(0))
+    timing.warm(sub.run.executor, job(sub), warmed, sub.run.stream("speed_timing").seed(0))
     for j, ((budget, _), spp) in enumerate(zip(ctx.budgets, spps)):
         stacks_j, tries = {}, {n: [] for n in spp}
         todo = {n: s if not j or n not in ctx.budget_tries[-1] else
@@ -159,7 +158,7 @@ def render(ctx) -> bool:
         for attempt in range(1 + LOADED_CORRECTIONS):
             got = stacks.interleaved(
                 sub, {n: sub.integrators[n] for n in todo}, todo, d.renders,
-                seeds.stream("speed", j).take(d.renders),
+                sub.run.stream("speed", j).take(d.renders),
                 f"{sub.label} {budget * 1e3:.0f} ms" + (f" (again: {len(todo)})"
                                                         if attempt else ""), timed=True)
             for n, u in got.items():

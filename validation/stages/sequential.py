@@ -133,7 +133,7 @@ def batch(ctx, name: str, look: int, spp: int, k: int,
     images = stacks.kept(ctx, kept_file(ctx, f"{stream}-{look}-{tag or name}"),
                          f"{stream}[{look}]",
                          {name: ctx.integrators[name]}, {name: spp}, k,
-                         seeds.stream(stream, look).take(k), label=ctx.label)[name].images
+                         ctx.run.stream(stream, look).take(k), label=ctx.label)[name].images
     return spp, images[..., :3]
 
 
