@@ -137,9 +137,8 @@ def _filled_by():
 def cache_key(scene_path: str, defines: dict, params: dict, variant: str,
               film: tuple[int, int] | None = None, code=None, seed_set: int = 0) -> str:
     """A hash of everything that decides a reference of the scene: its files'
-    bytes, $-parameters, integrator parameters, variant, versions, the
-    code of ``code`` (default: the modules that fill a reference) and the
-    seed set."""
+    bytes, $-parameters, integrator parameters, variant, versions, seed set
+    and the code of ``code`` (default: the modules that fill a reference)."""
     h = hashlib.sha256()
     for path in scenes.referenced_files(scene_path, defines):
         h.update(os.path.basename(path).encode())
