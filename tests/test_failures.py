@@ -391,7 +391,9 @@ def test_a_refusal_is_kept_without_the_frames_that_hold_its_scene(tmp_path):
     ``ctx.refused``. With its traceback, the refusal's frames held the
     context and its scene in a cycle after the case was released, and every
     later render dispatched over that scene's objects until Python's
-    collector came (docs/measurements.md, 2026-12-05): it is kept without."""
+    collector came
+    (docs/measurements.md#2026-12-05-ms-floor-recording-lingering): it is kept
+    without."""
     from mcillum.validation.stages import cases, common
     from mcillum.validation.stages.context import Context
     profile = profiles.Profile(name="quick", runs=())

@@ -42,11 +42,11 @@ from . import jobs, renders
 #: The variance of a mean of n passes has a relative standard error of
 #: √(2/(n − 1)): 25 % at 32 passes. Fewer passes underestimate a silhouette
 #: pixel's variance often enough to fail correct estimators
-#: (docs/measurements.md, 2026-11-22).
+#: (docs/measurements.md#2026-12-01-figures-moved-out-code).
 MIN_PASSES = 32
 #: Samples of one pass at least (pixels × spp): at 8² px a 64-spp pass of
-#: `path` took 2.5-3 ms, most of it the fixed cost of a launch (38-46 µs per
-#: spp against 6-19 µs at 1 024 spp; docs/measurements.md, 2026-12-03).
+#: `path` took 2.5-3 ms, most of it a launch's fixed cost (38-46 µs per spp
+#: against 6-19 µs at 1 024; docs/measurements.md#2026-12-03-quick-profile-cost-reference).
 PASS_SAMPLES = 1 << 16
 #: A reference expected to need many passes renders passes of at least its
 #: expected spp over this: a traced launch's fixed cost (1.6 ms on the lone
@@ -57,7 +57,7 @@ PASSES_WANTED = 256
 #: (the speed stage's, for the share its noise adds to a relMSE: over
 #: thousands of pixels 64 passes read it to well under 1 %), of this: at
 #: 128² a 16-spp pass of `path` cost a quarter of its time in the launch
-#: (docs/measurements.md, 2026-12-05).
+#: (docs/measurements.md#2026-12-05-error-bars-calibrated-below).
 AVERAGE_PASSES_WANTED = 64
 FORMAT_VERSION = 1
 

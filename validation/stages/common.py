@@ -154,7 +154,7 @@ def release(ctx) -> None:
     cycle still reached lived until Python's collector came round (a
     refusal kept with its traceback was such a cycle: cases._refusal), and
     six such scenes made a traced render of another 3.5× slower (5.5 →
-    19.6 ms; docs/measurements.md, 2026-12-05)."""
+    19.6 ms; docs/measurements.md#2026-12-05-ms-floor-recording-lingering)."""
     ctx.scene = None
     gc.collect()
 
