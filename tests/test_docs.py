@@ -20,7 +20,7 @@ from pathlib import Path
 from urllib.parse import unquote
 
 ROOT = Path(__file__).resolve().parents[1]
-README_MAX_LINES = 300
+README_MAX_LINES = 250
 
 
 def doc_files(root: Path = ROOT) -> list[Path]:
