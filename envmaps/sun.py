@@ -37,7 +37,8 @@ SUN_FACTOR = 100.0
 #: The widened sun's solid angle (sr): a disc of about 14.5° radius. At 8²
 #: px a hemisphere estimator hits it some 10⁴ times over the image in 16 384
 #: samples per pixel; at 0.06 sr four of the quick profile's fifteen sunlit
-#: tests still ended at ±4-6 % (docs/measurements.md, 2026-12-03).
+#: tests still ended at ±4-6 %
+#: (docs/measurements.md#2026-12-03-widened-sun-decides-sun).
 WIDENED_SOLID_ANGLE = 0.2
 #: Rec. 709 luminance weights.
 LUMA = np.array([0.2126, 0.7152, 0.0722])

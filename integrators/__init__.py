@@ -8,7 +8,8 @@ Mitsuba 3 plugins, one per file, in folders by family:
 * ``guiding/`` — ``guided_path`` and the tree it learns (``guide``);
 * ``bsdfs/`` — the Phong BSDF;
 * ``core/`` — what they share: the two loops (``estimator``,
-  ``direction_set``), the facts (``registry``), what a scene holds that a
+  ``direction_set``) and the render's entry before them (``checked_render``:
+  the scene check, passes), the facts (``registry``), what a scene holds that a
   strategy cannot reach (``scene_checks``), renders beyond 2³² samples
   (``passes``).
 
@@ -68,8 +69,9 @@ from .core.scene_checks import UnreachableContentError  # noqa: E402,F401  (vari
 #: modules may use an earlier family's (guiding takes mc's sampling routines).
 FAMILIES = ("mc", "bsdfs", "quadrature", "guiding")
 #: Base classes the plugins derive from, (re)loaded in this order before them:
-#: every estimator's, then that of the estimators of N directions per point.
-BASES = ("core.estimator", "core.direction_set")
+#: every estimator's render entry, the estimator loop, then that of the
+#: estimators of N directions per point.
+BASES = ("core.checked_render", "core.estimator", "core.direction_set")
 
 #: A line that begins with one of these calls registers a plugin at module
 #: level (column 0), as every plugin file does at its bottom.

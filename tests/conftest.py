@@ -121,8 +121,9 @@ def release_scenes(request):
 
     Every live scene joins the registry Dr.Jit's virtual calls dispatch
     over, so each render in the process slows with every scene kept alive
-    (docs/measurements.md); the modules' ``functools.lru_cache`` helpers
-    keep theirs for the rest of the run unless cleared here."""
+    (docs/measurements.md#2026-12-02-default-test-group-live); the modules'
+    ``functools.lru_cache`` helpers keep theirs for the rest of the run unless
+    cleared here."""
     yield
     for value in list(vars(request.module).values()):
         clear = getattr(value, "cache_clear", None)

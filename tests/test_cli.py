@@ -154,3 +154,36 @@ def test_exr_layers_round_trip_bit_for_bit_with_only_their_own_channels(tmp_path
         stored = sorted(f.channels())
     channels = 1 if len(shape) == 2 else shape[2]
     assert len(stored) == 2 * channels, stored
+
+
+def test_validate_sets_the_variant_and_imports_plugins_once(llvm, tmp_path, monkeypatch,
+                                                            capsys):
+    """The CLI sets the variant and imports the plugins (it checks the
+    estimators' names with them), and the pipeline takes them as set: a
+    second set-up would import each plugin again."""
+    from user_code import MY_INTEGRATOR
+
+    from mcillum import plugins
+    from mcillum.validation import pipeline
+    from mcillum.validation.run import renders
+
+    plugin = tmp_path / "mine.py"
+    plugin.write_text(MY_INTEGRATOR)
+    calls = {"variant": 0, "plugin": 0}
+
+    def counted(key, real):
+        def call(*args, **kwargs):
+            calls[key] += 1
+            return real(*args, **kwargs)
+        return call
+
+    def stop(*args, **kwargs):
+        raise RuntimeError("reached the renders")
+
+    monkeypatch.setattr(renders, "set_variant", counted("variant", renders.set_variant))
+    monkeypatch.setattr(plugins, "load", counted("plugin", plugins.load))
+    monkeypatch.setattr(pipeline, "start_executor", stop)
+    code = cli.main(["validate", "--plugin", str(plugin), "--estimators", "my_direct",
+                     "--scenes", "cornell_box", "--out", str(tmp_path / "out")])
+    assert code == cli.EXIT_FAILED and "reached the renders" in capsys.readouterr().err
+    assert calls == {"variant": 1, "plugin": 1}

@@ -242,11 +242,11 @@ def test_a_budget_no_whole_spp_meets_is_named_and_not_chased():
 
 def test_efficiency_interval_covers_under_skewed_errors_and_drifting_timings():
     """Per-render relMSE lognormal with σ = 0.3 (three times the spread of
-    any estimator's renders in the quick profile, docs/measurements.md
-    2026-12-02) and timings that drift 30 % over the K renders with one in
-    five 30 % slower (a shared machine): the ratio's interval keeps its
-    coverage (α = 0.01 on the count of 600 trials), the reference's share
-    subtracted from both."""
+    any estimator's renders in the quick profile,
+    docs/measurements.md#2026-12-02-speed-axis-net-efficiency) and timings that
+    drift 30 % over the K renders with one in five 30 % slower (a shared
+    machine): the ratio's interval keeps its coverage (α = 0.01 on the count of
+    600 trials), the reference's share subtracted from both."""
     rng = np.random.default_rng(11)
     trials, k, truth, share = 600, 4, 0.5, costs.Share(0.004, 0.001)
 
@@ -271,10 +271,10 @@ def test_a_loaded_machine_widens_the_interval_by_its_share():
     here log-normal with σ = 0.05 per set, and other processes using 0.7 of
     2 cores (a busy loop on one of them, as the slow speed test runs;
     efficiency ÷ path then moved by a log-SD of 0.06 from a quiet run's,
-    docs/measurements.md, 2026-12-05). With the load's term
-    (costs.load_log_se) the ratio's interval covers the quiet truth as
-    often as it claims (α = 0.01 on 600 trials); without it, it does not.
-    A quiet machine's term is 0, and it grows with the share used."""
+    docs/measurements.md#2026-12-05-loaded-machine-intervals). With the load's
+    term (costs.load_log_se) the ratio's interval covers the quiet truth as
+    often as it claims (α = 0.01 on 600 trials); without it, it does not. A
+    quiet machine's term is 0, and it grows with the share used."""
     rng = np.random.default_rng(12)
     trials, k, truth = 600, 4, 0.7
     load = costs.load_log_se(0.7, 2)
@@ -358,13 +358,13 @@ def test_fireflies_whose_error_renders_cannot_bound_make_the_efficiency_an_upper
         shape, flagged_at_most, flagged_at_least):
     """Fireflies at 2 % of 64² pixels over K = 6 renders (about 490 of them),
     100 trials on a seed the rule's thresholds were not tried on
-    (docs/measurements.md, 2026-12-05, "Efficiency under heavy tails"; seeds
-    7 and 8 agree). Light tail: tails.error_tail flags at most 10, and the
-    efficiency's Student-t interval covers the truth as often as it claims.
-    Heavy tail (squared error of shape 0.8): that interval covers it in
-    about two trials of three, so it does not; the rule flags at least 95,
-    and the interval the speed stage then states, [0, its upper end],
-    covers it as often as a 95 % interval must."""
+    (docs/measurements.md#2026-12-05-efficiency-under-heavy-tails, "Efficiency
+    under heavy tails"; seeds 7 and 8 agree). Light tail: tails.error_tail
+    flags at most 10, and the efficiency's Student-t interval covers the truth
+    as often as it claims. Heavy tail (squared error of shape 0.8): that
+    interval covers it in about two trials of three, so it does not; the rule
+    flags at least 95, and the interval the speed stage then states, [0, its
+    upper end], covers it as often as a 95 % interval must."""
     rng = np.random.default_rng(2026)
     trials, flagged, plain, stated = 100, 0, 0, 0
     for _ in range(trials):
@@ -442,7 +442,9 @@ def test_a_render_that_cannot_meet_its_budget_has_its_efficiency_withheld(monkey
     monkeypatch.setattr(budgets.timing, "warm", lambda *a, **kw: {})
     timings = {n: {1: [fixed + per_spp] * 3, 16: [fixed + 16 * per_spp] * 3} for n in sigma}
     executor = SimpleNamespace(timed_on=lambda: ["here"])
-    sub = SimpleNamespace(run=SimpleNamespace(executor=executor), label="fake",
+    from mcillum.validation.plan import seeds
+    run = SimpleNamespace(executor=executor, stream=lambda name, block=0: seeds.stream(name, block))
+    sub = SimpleNamespace(run=run, label="fake",
                           integrators=dict.fromkeys(sigma), reference=references.Reference(
                               truth, np.full(truth.shape, 1e-8), 64, 64, 1.0,
                               np.ones((64, 3))))

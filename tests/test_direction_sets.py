@@ -780,7 +780,8 @@ def test_bayesian_error_bars_are_calibrated_at_two_spp_16x_apart(llvm, envmap):
     pytest.param(0.1, "constant", marks=pytest.mark.xfail(strict=True, reason=(
         "a narrow GGX lobe under a constant map: -4.1 % at N = 256 (+2.9 % at 64, -21 % "
         "at 16): one Phong lobe cannot both hold its sharp peak and cover its tails "
-        "(docs/measurements.md, 2026-12-04); under courtyard -1.6 %")))])
+        "(docs/measurements.md#2026-12-04-convergence-fit-ladder-cannot); under courtyard "
+        "-1.6 %")))])
 def test_bayesian_hemisphere_bias_goes_to_zero_on_a_ggx_lobe(llvm, alpha, sky):
     """A rough conductor with GGX's power-law tails, as a user's scene holds
     one: at N = 256 the image mean lies within convergence.BIAS_LIMIT (2 %)

@@ -20,7 +20,7 @@ from pathlib import Path
 from urllib.parse import unquote
 
 ROOT = Path(__file__).resolve().parents[1]
-README_MAX_LINES = 300
+README_MAX_LINES = 250
 
 
 def doc_files(root: Path = ROOT) -> list[Path]:
@@ -89,8 +89,13 @@ def heading_text(raw: str) -> str:
 ATX = re.compile(r"^ {0,3}#{1,6}(?:\s+(.*?))?\s*$")
 
 
+#: An HTML anchor in the prose: ``<a id="2026-12-06-report-viewer"></a>``.
+HTML_ANCHOR = re.compile(r"<a\s+(?:id|name)=\"([^\"]+)\"")
+
+
 def anchors(path: Path) -> set[str]:
-    """The anchors GitHub gives the headings of ``path`` (duplicates -1, -2, …)."""
+    """The anchors GitHub gives the headings of ``path`` (duplicates -1, -2, …),
+    and the ids of its HTML anchors (``<a id="…">``)."""
     raw_lines = path.read_text(encoding="utf-8").split("\n")
     # which lines are headings is read with code blanked (a "# comment" in a
     # shell block is none); their titles from the raw line, code spans included
@@ -98,6 +103,7 @@ def anchors(path: Path) -> set[str]:
     seen: dict[str, int] = {}
     out = set()
     for i, line in enumerate(lines):
+        out.update(HTML_ANCHOR.findall(line))
         title = None
         if ATX.match(line):
             title = re.sub(r"\s+#+$", "", ATX.match(raw_lines[i]).group(1) or "")
@@ -204,6 +210,42 @@ def too_long(readme: Path, limit: int = README_MAX_LINES) -> str | None:
     return None
 
 
+# ------------------------- The code's citations of figures ------------------------
+
+#: A citation of a measurement in the code: ``docs/measurements.md#<anchor>``,
+#: or (the old way) a date after the file's name, which heads several entries.
+CITED = re.compile(r"measurements\.md(#[\w.-]+)?(?:,?\s+(?:#:?\s*)?(20\d\d-\d\d-\d\d))?")
+
+#: Code whose owners are rewriting it (issue 67: the guiding split, the speed
+#: stage), whose date citations they convert; none may be added elsewhere.
+DATED_FOR_NOW = {"integrators/guiding/guide.py", "integrators/guiding/guided_path.py",
+                 "validation/stages/speed.py"}
+
+
+def code_files(root: Path = ROOT) -> list[Path]:
+    """The package's and the tests' sources (.py, .toml)."""
+    return sorted(p for folder in ("mcillum", "integrators", "envmaps", "validation", "tests")
+                  for p in (root / folder).rglob("*") if p.suffix in (".py", ".toml"))
+
+
+def bad_citations(files: list[Path], root: Path = ROOT, dated_ok=DATED_FOR_NOW) -> list[str]:
+    """One line per citation of docs/measurements.md by an anchor it does not
+    have, or by a date alone (outside ``dated_ok``)."""
+    known = anchors(root / "docs" / "measurements.md")
+    out = []
+    for path in files:
+        rel = path.relative_to(root).as_posix()
+        text = path.read_text(encoding="utf-8")
+        for m in CITED.finditer(text):
+            line = text.count("\n", 0, m.start()) + 1
+            if m.group(1) and m.group(1)[1:] not in known:
+                out.append(f"{rel}:{line}: measurements.md{m.group(1)} names no entry")
+            elif m.group(2) and not m.group(1) and rel not in dated_ok:
+                out.append(f"{rel}:{line}: cites measurements.md by the date {m.group(2)}, "
+                           "which heads several entries: cite the entry's anchor")
+    return out
+
+
 # ------------------------------------ Tests -------------------------------------
 
 def test_every_relative_link_and_anchor_resolves():
@@ -223,6 +265,26 @@ def test_readme_states_no_wall_times_or_test_counts():
 
 # --------------------------- The checkers, checked ------------------------------
 
+def test_the_code_cites_measurements_by_their_anchors():
+    problems = bad_citations(code_files())
+    assert not problems, "\n".join(problems)
+
+
+def test_the_citation_check_finds_dates_and_unknown_anchors(tmp_path):
+    (tmp_path / "docs").mkdir()
+    (tmp_path / "docs" / "measurements.md").write_text(
+        '# M\n\n<a id="2026-01-01-one"></a>\n## 2026-01-01 — One\n', encoding="utf-8")
+    code = tmp_path / "a.py"
+    m = "docs/measurements" + ".md"          # (not a citation of this file's own)
+    code.write_text(f"# fine ({m}#2026-01-01-one)\n# fine ({m}#m)\n"
+                    f"# a date ({m}, 2026-01-01)\n"
+                    f"# a date on the next line ({m},\n# 2026-01-01)\n"
+                    f"# gone ({m}#2026-01-02-two)\n", encoding="utf-8")
+    problems = bad_citations([code], tmp_path, dated_ok=set())
+    assert [p.split(":")[1] for p in problems] == ["3", "4", "6"], problems
+    assert bad_citations([code], tmp_path, dated_ok={"a.py"})[0].startswith("a.py:6:")
+
+
 def test_slugs_follow_githubs_rules():
     assert slug("Validation: mcillum validate") == "validation-mcillum-validate"
     assert slug("2026-11-24 — Quick profile") == "2026-11-24--quick-profile"
@@ -235,24 +297,26 @@ def test_slugs_follow_githubs_rules():
 def test_the_link_checker_finds_what_is_broken(tmp_path):
     (tmp_path / "docs").mkdir()
     (tmp_path / "docs" / "a.md").write_text(
-        "# A\n\n## Twice\n\n## Twice\n\n## Équipe\n", encoding="utf-8")
+        "# A\n\n## Twice\n\n## Twice\n\n## Équipe\n\n<a id=\"2026-01-01-entry\"></a>\n"
+        "`<a id=\"in-code\"></a>`\n", encoding="utf-8")
     (tmp_path / "README.md").write_text(
         "# Readme\n\n"
         "[fine](docs/a.md) [fine](docs/a.md#twice-1) [fine](docs/a.md#équipe)\n"
         "[fine](#readme) [external](https://example.invalid/nowhere) [fine](/docs/a.md)\n"
         "![fine image](docs/a.md)\n"
         "[missing file](docs/b.md)\n"
-        "[missing anchor](docs/a.md#twice-2)\n"
+        "[missing anchor](docs/a.md#twice-2) [fine](docs/a.md#2026-01-01-entry)\n"
         "[missing local\nanchor](#nowhere)\n"
         "![missing image](docs/shot.png)\n"
         "```\n[in code](docs/none.md)\n```\n"
-        "`[in a span](docs/none.md)`\n"
+        "`[in a span](docs/none.md)` [anchor in code](docs/a.md#in-code)\n"
         "\n[ref]: docs/gone.md\n"
         "A sentence, not a definition:\n[2/3, 3/2]: pass\n", encoding="utf-8")
     problems = broken_links([tmp_path / "README.md", tmp_path / "docs" / "a.md"], tmp_path)
-    assert len(problems) == 5, problems
+    assert len(problems) == 6, problems
     for line, target in [(6, "docs/b.md"), (7, "docs/a.md#twice-2"), (8, "#nowhere"),
-                         (10, "docs/shot.png"), (16, "docs/gone.md")]:
+                         (10, "docs/shot.png"), (14, "docs/a.md#in-code"),
+                         (16, "docs/gone.md")]:
         assert any(p.startswith(f"README.md:{line}: ({target})") for p in problems), problems
 
 

@@ -46,7 +46,8 @@ def test_the_baseline_read_at_the_ladder_agrees_with_one_rendered_at_n_spp(llvm,
     at 1 024 spp read as its ladder renders' over 64 agrees with 16 renders
     at 1 024 spp within their intervals (a reading that forgot the 1/N
     would be 64× off). Over seed sets 10-19 at 16² the two readings'
-    ratio averaged 1.002 (sd 0.062; docs/measurements.md, 2026-12-04)."""
+    ratio averaged 1.002 (sd 0.062;
+    docs/measurements.md#2026-12-04-quadrature-stage-reads-baseline)."""
     ctx = _stage(tmp_path / "law", "lone_sphere")
     law = ctx.quadrature[SET].equal_rays
     assert law.baseline == BASELINE and law.baseline_spp == 64 * 16

@@ -16,7 +16,7 @@ import pytest
 from mcillum.envmaps import procedural, sun
 from mcillum.integrators.core import registry
 from mcillum.validation import pipeline
-from mcillum.validation.plan import profiles, seeds
+from mcillum.validation.plan import profiles
 from mcillum.validation.run import renders
 from mcillum.validation.stats import replication, statistics, tails
 from mcillum.validation.checks import sun as sun_rules
@@ -182,8 +182,9 @@ def _case(case_id, **changes):
 
 @pytest.fixture
 def run_case(llvm, tmp_path):
-    def run(case, estimators):
-        ctx = Run(profiles.QUICK, "llvm_ad_rgb", str(tmp_path / "cache"), str(tmp_path / "out"))
+    def run(case, estimators, seed_set=0):
+        ctx = Run(profiles.QUICK, "llvm_ad_rgb", str(tmp_path / "cache"), str(tmp_path / "out"),
+                  seed_set=seed_set)
         out, checks = pipeline.failure_case(ctx, case, estimators)
         return {e.name: e for e in out.estimators}, checks, out
     return run
@@ -379,11 +380,7 @@ def test_no_correct_estimator_is_called_biased_on_the_hardest_cases(run_case, ca
     and 2 tuned the rules before the sequential tests): no shipped
     estimator is "biased" (each sequential test at α = 0.01 spent over its
     looks, a fail confirmed on a fresh batch)."""
-    seeds.use_set(seed_set)
-    try:
-        rows, checks, _ = run_case(case, [*ALL_ESTIMATORS, "path"])
-    finally:
-        seeds.use_set(0)
+    rows, checks, _ = run_case(case, [*ALL_ESTIMATORS, "path"], seed_set)
     verdicts = {n: r.verdict for n, r in rows.items()}
     assert not any(v in FAILING for v in verdicts.values()), verdicts
     assert not [c for c in checks if c.outcome == "fail"]
@@ -394,7 +391,9 @@ def test_a_refusal_is_kept_without_the_frames_that_hold_its_scene(tmp_path):
     ``ctx.refused``. With its traceback, the refusal's frames held the
     context and its scene in a cycle after the case was released, and every
     later render dispatched over that scene's objects until Python's
-    collector came (docs/measurements.md, 2026-12-05): it is kept without."""
+    collector came
+    (docs/measurements.md#2026-12-05-ms-floor-recording-lingering): it is kept
+    without."""
     from mcillum.validation.stages import cases, common
     from mcillum.validation.stages.context import Context
     profile = profiles.Profile(name="quick", runs=())

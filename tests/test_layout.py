@@ -39,8 +39,6 @@ LONG = {
     # split in issue 67's next step
     "integrators/guiding/guide.py": 770,
     "integrators/guiding/guided_path.py": 609,
-    "integrators/quadrature/bayesian_hemisphere.py": 539,
-    "integrators/core/estimator.py": 463,
 }
 
 

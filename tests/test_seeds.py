@@ -6,9 +6,9 @@ import pytest
 from mcillum.validation.plan import seeds
 
 
-def all_streams() -> list[seeds.Stream]:
-    """Every block of every stream."""
-    return [seeds.stream(name, b) for name, layout in seeds.STREAMS.items()
+def all_streams(seed_set: int = 0) -> list[seeds.Stream]:
+    """Every block of every stream of seed set ``seed_set``."""
+    return [seeds.stream(name, b, seed_set) for name, layout in seeds.STREAMS.items()
             for b in range(layout.blocks)]
 
 
@@ -56,16 +56,13 @@ def test_seed_sets_are_disjoint_repeats():
     streams still never overlap; across sets the seeds differ; set 0 is the
     table of the module doc."""
     base = {s.name: s.take(min(s.size, 2000)) for s in all_streams()}
-    try:
-        seeds.use_set(1)
-        shifted = {s.name: s.take(min(s.size, 2000)) for s in all_streams()}
-        assert seeds.stream("ladder", 2).seed(3) == (20_003 + seeds.SET_STEP) % 2 ** 32
-        every = [x for xs in shifted.values() for x in xs]
-        assert len(every) == len(set(every))
-        assert all(0 <= x < 2 ** 32 for x in every)
-        assert not set(every) & {x for xs in base.values() for x in xs}
+    shifted = {s.name: s.take(min(s.size, 2000)) for s in all_streams(1)}
+    assert seeds.stream("ladder", 2, 1).seed(3) == (20_003 + seeds.SET_STEP) % 2 ** 32
+    every = [x for xs in shifted.values() for x in xs]
+    assert len(every) == len(set(every))
+    assert all(0 <= x < 2 ** 32 for x in every)
+    assert not set(every) & {x for xs in base.values() for x in xs}
+    for outside in (-1, 1000):
         with pytest.raises(ValueError, match="0…999"):
-            seeds.use_set(1000)
-    finally:
-        seeds.use_set(0)
+            seeds.stream("ladder", 2, outside)
     assert seeds.stream("ladder", 2).seed(3) == 20_003

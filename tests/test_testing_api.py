@@ -245,3 +245,60 @@ def test_a_failing_helper_shows_the_users_line_not_mcillums_frames(fresh):
     shown = result.stdout.str()
     for internal in ("testing.py", "pytest_plugin.py", "_judge(", "def run("):
         assert internal not in shown, f"{internal} in the traceback:\n{shown}"
+
+
+# ------------------------------ nothing left set ------------------------------
+
+#: What a comparison found, as JSON: each check's id, outcome and message,
+#: and a digest of each image it wrote (pixels, not the EXR's bytes).
+_FOUND = '''
+import hashlib, json, os, sys
+from mcillum import files
+from mcillum.testing import compare
+
+def found(c):
+    images = {}
+    for folder in c.images:
+        for name in sorted(os.listdir(folder)):
+            if name.endswith(".exr"):
+                pixels = files.read_exr(os.path.join(folder, name))[0]
+                images[name] = hashlib.sha256(pixels.tobytes()).hexdigest()
+    checks = [[k.id, k.outcome, k.message] for k in c.results.checks]
+    return {"checks": checks, "images": images}
+
+def run(scene, plugin, root, seed_set):
+    c = compare(scene, "my_direct", plugins=plugin, out_dir=f"{root}/out{seed_set}",
+                cache_dir=f"{root}/cache{seed_set}", defines={"res": 16}, res=8,
+                seed_set=seed_set)
+    return found(c)
+'''
+
+
+def test_two_seed_sets_in_one_process_are_as_in_two(user, tmp_path):
+    """Two comparisons with different seed sets, one after the other in this
+    process, find what each finds alone in a fresh process: the seed set
+    travels with the run, and nothing of the first run is left set for the
+    second (nor after it: a stream asked for outside a run is set 0's)."""
+    import json
+    import subprocess
+    import sys
+
+    from mcillum.validation.plan import seeds
+
+    here = {}
+    exec(_FOUND, here)
+    alone = {}
+    for s in (1, 2):
+        code = _FOUND + f"\nprint(json.dumps(run({user.scene!r}, {user.plugin!r}, " \
+                        f"{str(tmp_path / 'alone')!r}, {s})))"
+        done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                              check=True)
+        alone[s] = json.loads(done.stdout.strip().splitlines()[-1])
+    together = {s: here["run"](user.scene, user.plugin, str(tmp_path / "together"), s)
+                for s in (1, 2)}
+    assert together[1]["images"] and together[1]["checks"]
+    # (every image differs between the sets: no stream ignores the run's set)
+    differ = [together[1]["images"][k] != together[2]["images"][k] for k in together[1]["images"]]
+    assert all(differ), together
+    assert together == alone
+    assert seeds.stream("bench").seed(0) == 900_000

@@ -669,13 +669,15 @@ def test_an_efficiency_whose_truth_is_known_is_read_right(llvm, tmp_path):
     at equal time its efficiency is half of path's at its own spp: 0.5 ·
     (a/s_path + b)/(a/s_twice + b) with path's cost model (a, b). The speed
     stage reads it within 15 % (its own timing noise: one slow render in 8
-    moves it by 5 %, docs/measurements.md 2026-12-03); its interval, taken
-    to 99.9 % (:func:`_widened`), covers it: the 95 % one covered 8 of 10
-    runs, partly because the truth extrapolates the pilot's line (1-3 % off
-    at 30 spp, docs/measurements.md 2026-12-05), and a test that fails one
-    run in ten is no test for CI. The 95 % interval still tells the reading
-    apart from those a mistake in the timing would give: the thrown render
-    not counted (2×) or counted twice (½×)."""
+    moves it by 5 %,
+    docs/measurements.md#2026-12-03-speed-stage-reading-efficiency); its
+    interval, taken to 99.9 % (:func:`_widened`), covers it: the 95 % one
+    covered 8 of 10 runs, partly because the truth extrapolates the pilot's
+    line (1-3 % off at 30 spp,
+    docs/measurements.md#2026-12-05-known-efficiency-ratio-readings), and a
+    test that fails one run in ten is no test for CI. The 95 % interval still
+    tells the reading apart from those a mistake in the timing would give: the
+    thrown render not counted (2×) or counted twice (½×)."""
     from mcillum import plugins
     from user_code import TWICE_PATH
     plugin = tmp_path / "code" / "twice_path.py"

@@ -4,7 +4,8 @@ A run reads as a pipeline: **plan** (what to run) → **run** (renders and the
 reference) → **stats** (numbers) → **stages** (what each step of a scene
 comparison or a failure case measures) → **checks** (the verdicts) →
 **results** (records and their files) → **report** (what people look at).
-``pipeline`` strings them together; ``cli`` is the ``mcillum`` command.
+``pipeline`` strings them together; ``cli`` is the ``mcillum`` command
+(``arguments``: its parsers).
 
 Imports point down the table below: a module imports only modules of its
 own row or of rows beneath it, and never in a cycle. Two rows sit lower
@@ -16,7 +17,7 @@ tests/test_layout.py reads this table and fails on an import that breaks it.
 Layers, top to bottom:
 
     testing pytest_plugin  a user's tests: the comparison as a function, a pytest plugin
-    validation.cli        the `mcillum` command: parses arguments, calls the library
+    validation.cli validation.arguments   the `mcillum` command: parses arguments, calls the library
     validation.pipeline   the orchestrator: stage lists, checks, results, report
     validation.report     the HTML page, its charts and its image parts
     validation.stages     context; scene comparison, failure cases, sequential tests, speed, quadrature

@@ -42,6 +42,7 @@ import json
 import os
 import platform
 import time
+from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
@@ -153,6 +154,24 @@ def at_depth(estimators, plan) -> list[str]:
     return [n for n, d in zip(estimators, depths) if d is None or plan.max_depth in d]
 
 
+@dataclass(frozen=True)
+class Setup:
+    """The Mitsuba variant set and the user's plugins imported for one run."""
+
+    variant: str
+    plugins: tuple                  # mcillum.plugins.Plugin, the profile's first
+
+
+def set_up(profile: profiles.Profile, variant: str | None = None, plugins=()) -> Setup:
+    """Set ``variant`` (default $MCILLUM_VARIANT or llvm_ad_rgb) and import the
+    profile's plugins and ``plugins``; returns what was set. Raises ValueError
+    for an unknown variant, :class:`~mcillum.errors.UsageError` for a plugin
+    that cannot be imported."""
+    variant = renders.set_variant(variant)
+    return Setup(variant, tuple(mcillum_plugins.load(p, variant)
+                                for p in dict.fromkeys([*profile.plugins, *plugins])))
+
+
 def validate(profile_name="quick", scene_names=None, estimators=None,
              out_dir: str = "out/validate", cache_dir: str | None = None,
              variant: str | None = None, progress: bool | None = None,
@@ -160,7 +179,8 @@ def validate(profile_name="quick", scene_names=None, estimators=None,
              speed_stage: bool = True, executor: str = "local",
              ray_address: str | None = None, ray_workers: int | None = None,
              plugins=(), settings: dict | None = None, defines: dict | None = None,
-             res: int | None = None, budget: float | None = None) -> results.Results:
+             res: int | None = None, budget: float | None = None,
+             setup: Setup | None = None) -> results.Results:
     """Run a profile (a bundled name, a profile file's path, or a
     :class:`~.plan.profiles.Profile`): its
     scene comparisons and/or its failures group (``groups``), filtered by
@@ -186,10 +206,12 @@ def validate(profile_name="quick", scene_names=None, estimators=None,
     """
     profile = (profile_name if isinstance(profile_name, profiles.Profile)
                else profiles.resolve(profile_name))
-    variant = renders.set_variant(variant)
-    loaded = [mcillum_plugins.load(p, variant)
-              for p in dict.fromkeys([*profile.plugins, *plugins])]
-    seeds.use_set(seed_set)
+    if setup is None:
+        setup = set_up(profile, variant, plugins)
+    elif variant is not None or plugins:
+        raise ValueError("give either setup or variant and plugins, not both")
+    variant, loaded = setup.variant, setup.plugins
+    seed_set = seeds.check_set(seed_set)
     estimators = list(estimators or profile.estimator_names())
     cases_estimators = list(dict.fromkeys([*estimators, registry.REFERENCE]))
     names = list(scene_names or [])
@@ -226,7 +248,7 @@ def validate(profile_name="quick", scene_names=None, estimators=None,
         with start_executor(executor, ray_address, ray_workers, variant, loaded) as ex, \
                 mitsuba_log.plain() as log:
             bar = Progress(total, progress, log=log)
-            run = Run(profile, variant, cache_dir, out_dir, bar, ex, budget)
+            run = Run(profile, variant, cache_dir, out_dir, bar, ex, budget, seed_set=seed_set)
             try:
                 for plan in plans:
                     result, found = compare_scene(run, plan, estimators, speed_stage,

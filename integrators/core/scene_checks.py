@@ -75,8 +75,9 @@ _FOR_DELTA_LOBES = "use bsdf_sampling or mis (or Mitsuba's 'path')"
 
 #: Microfacet roughness below which a lobe counts as (near-)delta. Mitsuba
 #: clamps alpha = 0 to 1e-4, which a hemisphere pdf reaches as rarely as a true
-#: delta (docs/measurements.md). Lobes at alpha >= 5e-3 stay allowed: unbiased,
-#: but heavy-tailed, which the failure suite measures down to alpha = 0.01.
+#: delta (docs/measurements.md#2026-12-01-figures-moved-out-code). Lobes at
+#: alpha >= 5e-3 stay allowed: unbiased, but heavy-tailed, which the failure
+#: suite measures down to alpha = 0.01.
 NEAR_DELTA_ALPHA = 5e-3
 
 

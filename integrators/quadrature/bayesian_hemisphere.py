@@ -4,78 +4,21 @@ pixel."""
 
 from __future__ import annotations
 
-import warnings
-from typing import NamedTuple
-
 import drjit as dr
 import mitsuba as mi
 
-from ..bsdfs.phong import covering_exponent, phong_lobe_pdf, sample_phong_lobe
+from ..bsdfs.phong import phong_lobe_pdf
 from ..core import registry, scene_checks
 from ..core.direction_set import DirectionSetEstimator
 from ..core.estimator import over_pdf
-from . import gp_settings
+from . import bmc_weights
+from .bmc_lobe import SplitSettings, draw_lobe, lobe_node, lobes, split_settings
+from .bmc_weights import gather, set_variance, split_variance
 from .fibonacci_hemisphere import MAPPINGS, fibonacci_point
 from .gp_scene import (DEFAULT_LENGTH_SCALE, DEFAULT_MAPPING, DEFAULT_NOISE, DEFAULT_SETS,
-                       choose_hyperparameters, choose_lobe_settings, likelihood_length_scale)
+                       choose_hyperparameters, likelihood_length_scale)
 
 PRIOR_MEANS = ("constant", "zero")
-
-# ----------------------------- Strategy ---------------------------------
-# Directions: one of `sets` spherical-Fibonacci sets, u shifted between the
-# unshifted set's neighbours (gp_quadrature.set_shift), cosine- or
-# uniform-mapped, turned about the normal by one random angle per shading
-# point: the turn leaves every θ_j, hence z and Q, unchanged, so each set's
-# weights a = Q⁻¹z (with the constant-mean correction) are the same at every
-# pixel. Drawing the set at random makes a pixel average several sets'
-# errors: one fixed set's error about a normal is the same for every turn,
-# and spp would not average it away.
-#
-# Glossy lobes: a second set of N_b = ⌊N/2⌋ nodes about the mirror direction
-# r, mapped by a Phong lobe cosⁿ α whose n is read off the BSDF (its glossy
-# density at r is (n + 1)/(2π) for a Phong lobe; lowered where the lobe's
-# tails are heavier, as GGX's are: phong.covering_exponent), rounded to the
-# nearest of gp_settings.EXPONENTS so that its weights are tabulated like
-# the diffuse set's. The two sets
-# split the integral, not the samples: the lobe set integrates f_glossy cos L
-# where r·ω > 0 against p_n, the diffuse set everything else against cos θ/π.
-
-#: (The lobe exponents tabulated: gp_settings.EXPONENTS.)
-STEPS_PER_OCTAVE, EXPONENTS = gp_settings.STEPS_PER_OCTAVE, gp_settings.EXPONENTS
-
-
-def lobes(ctx: mi.BSDFContext, flags) -> mi.BSDFContext:
-    """``ctx`` restricted to the lobes of ``flags`` (what it enables of them)."""
-    return mi.BSDFContext(ctx.mode, ctx.type_mask & +flags, ctx.component)
-
-
-def lobe_index(exponent):
-    """Index into EXPONENTS of the tabulated exponent nearest ``exponent`` in
-    log n (the first below it, the last above)."""
-    k = dr.round(dr.log2(dr.maximum(exponent, 1.0)) * STEPS_PER_OCTAVE)
-    return mi.UInt32(dr.clip(k, 0.0, len(EXPONENTS) - 1.0))
-
-
-#: The lobe set's ℓ in lobe widths √(2/(n + 1)) and its σ_n²/σ² where
-#: nothing is there to choose them by (no map, a constant one, no glossy
-#: surface in view). On SG lighting of sharpness 4 and 32 inside a cos³⁰
-#: lobe (a numpy study, 8 and 32 nodes) they gave 0.22-0.57× the squared
-#: error of equal weights.
-LOBE_LENGTH_SCALE, LOBE_NOISE = 1.0, 1e-3
-
-
-class SplitSettings(NamedTuple):
-    """The settings of a glossy point's two sets: the diffuse set's (for its
-    N − N_b nodes) and the lobe set's (ℓ in lobe widths)."""
-
-    length_scale: float
-    noise: float
-    mapping: str
-    calibration: float
-    lobe_length_scale: float
-    lobe_noise: float
-    lobe_calibration: float
-
 
 class Unwalked:
     """A plain holder of Python records. Dr.Jit walks a Python plugin's
@@ -148,21 +91,14 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
     directions are one of ``sets`` spherical-Fibonacci sets (shifted in
     u), drawn at random and turned about the normal by a random angle per
     shading point, so each set's z and Q, hence a, are the same everywhere:
-    computed once per (N, ℓ, σ_n², set) in float64 and cached. A fixed set
+    computed once per (N, ℓ, σ_n², set) and cached (bmc_weights.py). A fixed set
     errs the same way at every turn about a normal, an error spp does not
     average away; drawing among shifted sets averages several sets' errors.
 
     ``auto`` settings are chosen for the quadrature, not for the lighting:
-    each candidate (ℓ from half the nodes' spacing, ½√(2π/N), to 2; σ_n²/σ²
-    of 0.001, 0.1 and 10; both mappings) is scored by the relative squared
-    error a pixel of the render's spp would get on known integrals, the
-    scene's environment map integrated against cos θ/π about the normals
-    of 64 surface points the camera sees (exactly, by the
-    map's own importance sampling), every set at evenly spaced turns. The
-    least error wins where it beats the safe candidate (largest σ_n² and ℓ:
-    nearly equal weights) by more than two standard errors of the paired
-    per-normal differences; else the safe one. Chosen once per map, N, spp
-    and camera view, and cached; ``source`` says how they were chosen and
+    by the error of each candidate on known integrals of the scene's
+    environment map about normals the camera sees (gp_scene.py), once per
+    map, N, spp and camera view; ``source`` says how they were chosen and
     ``choice`` holds every candidate's score. Without an environment map,
     or with a constant one, ``auto`` means ℓ = 0.5, σ_n²/σ² = 0.001 and
     cosine nodes.
@@ -171,12 +107,11 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
     average of samples), and accurate where the lighting is smooth at scale
     ℓ; a sun or a hard shadow breaks the prior. Every camera sample also
     gives the posterior variance κ · c · σ̂², c = aᵀQa − 2aᵀz + ∫∫kpp and
-    σ̂² the prior variance estimated from the N samples by moments. The GP's
-    own c·σ̂² is off by orders of magnitude (× 1400 on the lone sphere under
-    ``sg`` with the settings chosen), so κ is fitted on the held-out
-    integrals, given settings or chosen: the factor that makes it predict
-    the part of the error spp does not average away, the squared mean error
-    per normal (1 without a map to fit on). It is written as the AOV
+    σ̂² the prior variance estimated from the N samples by moments
+    (bmc_weights.set_variance); κ, fitted on the held-out integrals, makes
+    it predict the part of the error spp does not average away (the GP's own
+    c·σ̂² is off by orders of magnitude: gp_settings.calibration_factor).
+    It is written as the AOV
     ``posterior_var`` (per channel; one ``Y`` channel in
     mono and spectral variants), which the film averages over the pixel's
     camera samples, beside ``sample_sq``, the film's mean of L². The pixel's
@@ -191,22 +126,10 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
 
     Glossy lobes (``phong``, ``roughconductor``, ``roughplastic``, ...): at
     a shading point whose BSDF has one, N_b = ⌊N/2⌋ of the directions (for
-    N ≥ 4) form a second set about the mirror direction r, mapped by a
-    Phong lobe p_n(ω) = (n + 1)/(2π) cosⁿ α whose exponent is read off the
-    BSDF (n = 2π p_glossy(r) − 1, exact for ``phong``; lowered where the
-    lobe falls slower than cosⁿ α, so that a GGX lobe's power-law tails lie
-    inside p_n: ``phong.covering_exponent``) and rounded to one of 41
-    tabulated exponents (four per octave, 1 to 1024). The sets split
-    the integral, not the samples: the lobe set integrates f_glossy cos θ L_i
-    where r·ω > 0 against p_n, the other N − N_b directions everything else
-    against cos θ/π, each with its own BMC weights and posterior variance
-    (they add). The diffuse set's settings are chosen as above for N − N_b
-    nodes; the lobe set's ℓ (in lobe widths √(2/(n + 1)), 0.5 to 2.83) and
-    σ_n²/σ² by the same rule on held-out lobes: the map integrated against
-    the lobe about the mirror directions of the glossy surfaces the camera
-    sees, at the median of their exponents (without a map to score on: one
-    lobe width and 1e-3). The GP then models L_i·f cos/p_n on the lobe,
-    smooth where the lobe is a Phong lobe of the tabulated exponent.
+    N ≥ 4) form a second set about the mirror direction, mapped by a Phong
+    lobe of the BSDF's exponent, with weights and settings of its own; the
+    two sets split the integral, and their posterior variances add
+    (bmc_lobe.py).
 
     .. tabs::
 
@@ -318,13 +241,8 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
         split, self.lobe_choice = None, None
         if glossy:
             diffuse = settings(self.directions - self.lobe_directions)[2]
-            self.lobe_choice, scored_at = choose_lobe_settings(
-                scene, self.lobe_directions, self.prior_mean, self.sets, spp)
-            self.lobe_exponent = scored_at if self.lobe_choice is not None else None
-            c = self.lobe_choice
-            lobe = (LOBE_LENGTH_SCALE, LOBE_NOISE, diffuse[3]) if c is None else (
-                c.length_scale / gp_settings.lobe_width(scored_at), c.noise, c.calibration)
-            split = SplitSettings(*diffuse, *lobe)
+            split, self.lobe_choice, self.lobe_exponent = split_settings(
+                scene, diffuse, self.lobe_directions, self.prior_mean, self.sets, spp)
         self._use(*chosen, split=split)
 
     def chosen_settings(self, scene, spp: int) -> dict:
@@ -363,43 +281,13 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
         return self.split is not None
 
     def _use_table(self):
-        # The weight tables stay local: Dr.Jit walks a Python plugin's
+        # The gp_settings records stay local: Dr.Jit walks a Python plugin's
         # attributes (Unwalked), and the lobe tables' 656 records cost 0.18 s
-        # a launch there.
-        n, n_b = self.directions, self.lobe_directions
-        with warnings.catch_warnings():
-            if self.chooses:
-                # (a chosen setting's extra jitter is part of what was scored)
-                warnings.simplefilter("ignore", RuntimeWarning)
-            tables = gp_settings.set_weights(n, self.length_scale, self.noise,
-                                             self.prior_mean, self.mapping, self.sets)
-            self._a, self._c, self._d = self._flat(tables, self.calibration)
-            if self.glossy:
-                # the diffuse set of a glossy point, and the lobe set per exponent
-                s = self.split
-                split_tables = gp_settings.set_weights(
-                    n - n_b, s.length_scale, s.noise, self.prior_mean, s.mapping, self.sets)
-                # (ℓ in lobe widths: the same relative kernel at every exponent)
-                lobe_tables = [
-                    t for e in EXPONENTS for t in gp_settings.set_weights(
-                        n_b, s.lobe_length_scale * gp_settings.lobe_width(e), s.lobe_noise,
-                        self.prior_mean, "lobe", self.sets, e)]
-                self._a2, self._c2, self._d2 = self._flat(split_tables, s.calibration)
-                self._b, self._cb, self._db = self._flat(lobe_tables, s.lobe_calibration)
-
-    def _flat(self, tables, calibration: float):
-        """(weights, error factors × ``calibration``, amplitude divisors) of
-        ``tables``, flat, as Dr.Jit arrays (lists in scalar variants)."""
-        a = [float(x) for t in tables for x in t.weights]
-        c = [float(t.error_factor) * calibration for t in tables]
-        d = [float(t.amplitude_divisor) for t in tables]
-        jit = dr.is_jit_v(mi.Float)
-        return (mi.Float(a), mi.Float(c), mi.Float(d)) if jit else (a, c, d)
-
-    def _gather(self, table, index, active):
-        if dr.is_jit_v(mi.Float):
-            return dr.gather(mi.Float, table, index, active)
-        return table[int(index)] if active else 0.0
+        # a launch there. (Their flat arrays, a few, are walked.)
+        self._tables = bmc_weights.build(
+            self.directions, self.lobe_directions, self.length_scale, self.noise,
+            self.mapping, self.prior_mean, self.sets, self.calibration, self.split,
+            quiet=self.chooses)
 
     # ----------------------------- The set -------------------------------
 
@@ -409,14 +297,7 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
         which = mi.UInt32(dr.minimum(sampler.next_1d(active) * self.sets, self.sets - 1))
         if dr.hint(not self.glossy, mode='scalar'):
             return turn, which
-        # A glossy point: its lobe's exponent from the glossy density at the
-        # mirror direction (0 there: no lobe towards the viewer, one set),
-        # widened where the lobe's tails are heavier than a Phong lobe's
-        glossy, r = lobes(ctx, mi.BSDFFlags.Glossy), mi.reflect(si.wi)
-        peak = bsdf.pdf(glossy, si, r, active)
-        lobe = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Glossy) & (peak > 0)
-        q = lobe_index(covering_exponent(lambda w: bsdf.pdf(glossy, si, w, lobe), r, peak))
-        return turn, which, lobe, q, sampler.next_1d(active)
+        return turn, which, *draw_lobe(sampler, si, bsdf, ctx, active)
 
     def second_set_start(self, drawn):
         return dr.select(drawn[2], mi.UInt32(self.directions - self.lobe_directions),
@@ -434,7 +315,8 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
             # f cos θ / p = ρ for a diffuse BSDF: the GP models L_i, ρ scales it
             f_cos = bsdf.eval(ctx, si, wo, active)
             factor = over_pdf(f_cos, p)
-            return wo, factor, self._gather(self._a, which * self.directions + j, active)
+            return wo, factor, gather(self._tables.plain.weights,
+                                      which * self.directions + j, active)
         return self._split_direction(j, drawn, si, bsdf, ctx, active)
 
     def _split_direction(self, j, drawn, si, bsdf, ctx, active):
@@ -453,10 +335,7 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
         w_up = dr.select(lobe, MAPPINGS[self.split.mapping][0](u), MAPPINGS[self.mapping][0](u))
         wo_a = mi.Vector3f(w_up.x, w_up.y, dr.mulsign(w_up.z, si.wi.z))
         # Lobe set: (n + 1)/(2π) cosⁿ α about the mirror direction r
-        n_q = dr.exp2(mi.Float(q) / STEPS_PER_OCTAVE)
-        shift_b = ((mi.Float(which) + 0.5) / self.sets - 0.5) / n_b
-        r = mi.reflect(si.wi)
-        w_lobe = sample_phong_lobe(fibonacci_point(j_b, n_b, mi.Point2f(shift_b, turn_b)), n_q)
+        r, w_lobe, n_q = lobe_node(j_b, n_b, which, self.sets, turn_b, q, si)
         wo = dr.select(in_a, wo_a, mi.Frame3f(r).to_world(w_lobe))
 
         # The integrand of each set: f_glossy where r·ω > 0 belongs to the lobe set
@@ -469,50 +348,28 @@ class BayesianHemisphereIntegrator(DirectionSetEstimator):
         p_a = dr.abs(mi.Frame3f.cos_theta(wo)) * dr.inv_pi
         factor = dr.select(in_a, over_pdf(f_d + dr.select(to_a, f_g, 0.0), p_a),
                            over_pdf(f_g, phong_lobe_pdf(w_lobe, n_q)))
-        a = dr.select(lobe, self._gather(self._a2, which * n_a + j, active & in_a & lobe),
-                      self._gather(self._a, which * n_a + j, active & in_a & flat))
-        b = self._gather(self._b, (q * self.sets + which) * n_b + j_b,
-                         active & dr.select(in_a, False, True))
+        t = self._tables
+        a = dr.select(lobe, gather(t.split.weights, which * n_a + j, active & in_a & lobe),
+                      gather(t.plain.weights, which * n_a + j, active & in_a & flat))
+        b = gather(t.lobe.weights, (q * self.sets + which) * n_b + j_b,
+                   active & dr.select(in_a, False, True))
         return wo, factor, dr.select(in_a, a, b)
 
     second_set_sums = glossy         # (a glossy point keeps each set's sums apart)
 
     def finish(self, total, s1, s2, y0, drawn, active):
-        which = drawn[1]
+        which, t = drawn[1], self._tables
         if dr.hint(not self.glossy, mode='scalar'):
-            var = self._set_variance(s1, s2, y0, self.directions, self._c, self._d, which,
-                                     active)
+            var = set_variance(self.prior_mean, s1, s2, y0, self.directions, t.plain, which,
+                               active)
         else:
-            lobe, q = drawn[2], drawn[3]
-            n_b = self.lobe_directions
-            n_a = dr.select(lobe, mi.UInt32(self.directions - n_b), mi.UInt32(self.directions))
-            # the two sets' posteriors are independent: their variances add
-            var_a = dr.select(
-                lobe, self._set_variance(s1[0], s2[0], y0[0], n_a, self._c2, self._d2, which,
-                                         active & lobe),
-                self._set_variance(s1[0], s2[0], y0[0], n_a, self._c, self._d, which,
-                                   active & dr.select(lobe, False, True)))
-            var_b = self._set_variance(s1[1], s2[1], y0[1], n_b, self._cb, self._db,
-                                       q * self.sets + which, active & lobe)
-            var = var_a + dr.select(lobe, var_b, 0.0)
+            var = split_variance(self.prior_mean, s1, s2, y0, self.directions,
+                                 self.lobe_directions, drawn, self.sets, t, active)
         if dr.hint(mi.is_rgb, mode='scalar'):
             found = [var[0], var[1], var[2]]
         else:
             found = [dr.mean(var)]
         return total, found
-
-    def _set_variance(self, s1, s2, y0, n, c, d, table, active):
-        """κ·c·σ̂² of one set of n values, table ``table`` of c and d."""
-        n = mi.Float(n)
-        # σ̂² by moments: E[Σ(Y − Ȳ)²] = σ² (tr Q − 1ᵀQ1/N) (zero mean: E[ΣY²] = σ² tr Q);
-        # Σ(Y − Ȳ)² = Σd² − (Σd)²/N and ΣY² = Σd² + 2Y₀Σd + N Y₀² for d = Y − Y₀
-        if dr.hint(self.prior_mean == "constant", mode='scalar'):
-            spread = s2 - dr.square(s1) / n
-        else:
-            spread = s2 + 2.0 * y0 * s1 + n * dr.square(y0)
-        # (an inactive lane gathers d = 0; scalar variants evaluate both sides of a select)
-        return (self._gather(c, table, active) * dr.maximum(spread, 0.0)
-                / dr.maximum(self._gather(d, table, active), 1e-30))
 
     def finish_aovs(self) -> int:
         return 3 if mi.is_rgb else 1

@@ -1,7 +1,18 @@
 """Settings of Bayesian Monte Carlo chosen for the quadrature: the scene's
 side (Mitsuba). The environment map evaluated and integrated about the
 normals the camera sees, handed to the rule in gp_settings.py, and the
-maximum-likelihood ℓ that ``length_scale = likelihood`` asks for."""
+maximum-likelihood ℓ that ``length_scale = likelihood`` asks for.
+
+What ``auto`` does (bayesian_hemisphere.py): each candidate (ℓ from half the
+nodes' spacing, ½√(2π/N), to 2; σ_n²/σ² of 0.001, 0.1 and 10; both mappings)
+is scored by the relative squared error a pixel of the render's spp would
+get on known integrals, the scene's environment map integrated against
+cos θ/π about the normals of 64 surface points the camera sees (exactly, by
+the map's own importance sampling), every set at evenly spaced turns. The
+least error wins where it beats the safe candidate (largest σ_n² and ℓ:
+nearly equal weights) by more than two standard errors of the paired
+per-normal differences; else the safe one. Chosen once per map, N, spp and
+camera view, and cached."""
 
 from __future__ import annotations
 

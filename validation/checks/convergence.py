@@ -41,9 +41,10 @@ def convergence_outcome(c, resolved: bool, rungs: int | None = None) -> tuple[st
     freedom (12.7 at 3 rungs, 3.2 at 5), and a learner's error, falling
     faster as it learns more, is not quite a line (a user's guided_path: 1.08
     wide on 3 rungs whatever the renders per rung, 0.42 on 5;
-    docs/measurements.md, 2026-12-03). Where the fit was continued on more
-    renders per rung (``c.looks``), the message says on how many, and an
-    inconclusive one that more would decide says that its budget is spent."""
+    docs/measurements.md#2026-12-03-user-guided-path-stock-style-room). Where
+    the fit was continued on more renders per rung (``c.looks``), the message
+    says on how many, and an inconclusive one that more would decide says that
+    its budget is spent."""
     outcome, message = _outcome(c, resolved, rungs)
     if c.looks:
         message += (f" (on {c.renders} renders per rung, after {c.looks} more "

@@ -34,7 +34,8 @@ bench`, which used 0, 1, …, has its own stream now):
 Within one scene run or failure case every stream is used once; different
 scenes reuse them (they are different experiments).
 
-Seed sets (:func:`use_set`, ``mcillum validate --seed-set S``): set 0 is the
+Seed sets (``mcillum validate --seed-set S``; the run carries its set,
+``stages.context.Run.seed_set``, and passes it to :func:`stream`): set 0 is the
 table above; set S adds S·0x9E3779B9 to every seed, modulo 2³². Adding a
 constant modulo 2³² maps distinct seeds to distinct seeds, so the streams of
 one set still never overlap, and Mitsuba's sampler hashes its seed, so each
@@ -114,24 +115,20 @@ SEEDS = 2 ** 32
 #: constant, so that the sets' streams land far from each other.
 SET_STEP = 0x9E3779B9
 
-_set = 0
+SETS = 1000
 
 
-def use_set(s: int) -> None:
-    """Make every stream hand out the seeds of seed set ``s`` (module doc)."""
-    global _set
-    if not 0 <= s < 1000:
-        raise ValueError(f"the seed set must be in 0…999, got {s}")
-    _set = int(s)
+def check_set(s: int) -> int:
+    """Seed set ``s`` as an int; raises ValueError outside 0…999."""
+    if not 0 <= s < SETS:
+        raise ValueError(f"the seed set must be in 0…{SETS - 1}, got {s}")
+    return int(s)
 
 
-def seed_set() -> int:
-    """The seed set in use."""
-    return _set
-
-
-def stream(name: str, block: int = 0) -> Stream:
-    """Block ``block`` of the stream called ``name``."""
+def stream(name: str, block: int = 0, seed_set: int = 0) -> Stream:
+    """Block ``block`` of the stream called ``name``, in seed set ``seed_set``
+    (module doc). Raises KeyError for an unknown stream, ValueError for a
+    block or seed set outside it."""
     if name not in STREAMS:
         raise KeyError(f"no seed stream '{name}'; the streams are {', '.join(STREAMS)}")
     layout = STREAMS[name]
@@ -140,4 +137,4 @@ def stream(name: str, block: int = 0) -> Stream:
                          f"block {block} is outside it")
     label = name if layout.blocks == 1 else f"{name}[{block}]"
     return Stream(label, layout.first + block * layout.size, layout.size,
-                  _set * SET_STEP % SEEDS)
+                  check_set(seed_set) * SET_STEP % SEEDS)

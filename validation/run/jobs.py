@@ -32,8 +32,8 @@ from .replays import Replays
 #: Scenes a workshop keeps loaded. One: every live scene's shapes, BSDFs and
 #: emitters join Dr.Jit's instance registry, which every virtual call in a
 #: kernel dispatches over, so each scene kept slows every render
-#: (docs/measurements.md, 2026-11-24). A validation renders one scene after
-#: another, so a reload is rare.
+#: (docs/measurements.md#2026-11-24-live-scenes-slow-process). A validation
+#: renders one scene after another, so a reload is rare.
 SCENES_KEPT = 1
 
 

@@ -3,11 +3,11 @@ first timed render (stages/speed.time_costs).
 
 A run's wall time says as much about its machine as about its work: the
 same full profile took 1.19× longer on one day's development VM than on the
-day before, with nothing else running (docs/measurements.md, 2026-12-06).
-So every run that times renders first times Mitsuba's `path` on the
-bundled Cornell box at a fixed film and spp, in this process, and records
-it beside its wall time; two runs' wall times compare after dividing each
-by its own probe.
+day before, with nothing else running
+(docs/measurements.md#2026-12-06-five-speed-stages-machine). So every run that
+times renders first times Mitsuba's `path` on the bundled Cornell box at a
+fixed film and spp, in this process, and records it beside its wall time; two
+runs' wall times compare after dividing each by its own probe.
 """
 
 from __future__ import annotations
@@ -24,7 +24,8 @@ from .timing import timed
 
 SCENE, RES, SPP, MAX_DEPTH = "cornell_box", 128, 64, 8
 #: Timed renders after the untimed one: the median of 7 moved by 1-2 %
-#: between runs on a quiet machine (docs/measurements.md, 2026-12-06).
+#: between runs on a quiet machine
+#: (docs/measurements.md#2026-12-06-five-speed-stages-machine).
 ROUNDS = 7
 
 

@@ -56,7 +56,8 @@ RETRIES = 3
 #: scene after another; the full profile has some 70, each with its map).
 FILES_KEPT = 4
 #: Jobs per call at most: a call costs about as much of Ray's time as a
-#: small render of the quick profile (docs/measurements.md, 2026-11-24).
+#: small render of the quick profile
+#: (docs/measurements.md#2026-12-01-figures-moved-out-code).
 MAX_CHUNK = 16
 
 

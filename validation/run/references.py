@@ -34,7 +34,7 @@ import numpy as np
 
 from mcillum import files
 
-from ..plan import scenes, seeds
+from ..plan import scenes
 from ..stats import metrics
 from ..stats.statistics import Moments
 from . import jobs, renders
@@ -42,11 +42,11 @@ from . import jobs, renders
 #: The variance of a mean of n passes has a relative standard error of
 #: √(2/(n − 1)): 25 % at 32 passes. Fewer passes underestimate a silhouette
 #: pixel's variance often enough to fail correct estimators
-#: (docs/measurements.md, 2026-11-22).
+#: (docs/measurements.md#2026-12-01-figures-moved-out-code).
 MIN_PASSES = 32
 #: Samples of one pass at least (pixels × spp): at 8² px a 64-spp pass of
-#: `path` took 2.5-3 ms, most of it the fixed cost of a launch (38-46 µs per
-#: spp against 6-19 µs at 1 024 spp; docs/measurements.md, 2026-12-03).
+#: `path` took 2.5-3 ms, most of it a launch's fixed cost (38-46 µs per spp
+#: against 6-19 µs at 1 024; docs/measurements.md#2026-12-03-quick-profile-cost-reference).
 PASS_SAMPLES = 1 << 16
 #: A reference expected to need many passes renders passes of at least its
 #: expected spp over this: a traced launch's fixed cost (1.6 ms on the lone
@@ -57,7 +57,7 @@ PASSES_WANTED = 256
 #: (the speed stage's, for the share its noise adds to a relMSE: over
 #: thousands of pixels 64 passes read it to well under 1 %), of this: at
 #: 128² a 16-spp pass of `path` cost a quarter of its time in the launch
-#: (docs/measurements.md, 2026-12-05).
+#: (docs/measurements.md#2026-12-05-error-bars-calibrated-below).
 AVERAGE_PASSES_WANTED = 64
 FORMAT_VERSION = 1
 
@@ -135,10 +135,10 @@ def _filled_by():
 
 
 def cache_key(scene_path: str, defines: dict, params: dict, variant: str,
-              film: tuple[int, int] | None = None, code=None) -> str:
+              film: tuple[int, int] | None = None, code=None, seed_set: int = 0) -> str:
     """A hash of everything that decides a reference of the scene: its files'
-    bytes, $-parameters, integrator parameters, variant, versions and the
-    code of ``code`` (default: the modules that fill a reference)."""
+    bytes, $-parameters, integrator parameters, variant, versions, seed set
+    and the code of ``code`` (default: the modules that fill a reference)."""
     h = hashlib.sha256()
     for path in scenes.referenced_files(scene_path, defines):
         h.update(os.path.basename(path).encode())
@@ -150,17 +150,17 @@ def cache_key(scene_path: str, defines: dict, params: dict, variant: str,
             "code": files.code_hash(*(code if code is not None else _filled_by()))}
     if film is not None:                  # a user's scene at a reduced film
         desc["film"] = list(film)
-    if seeds.seed_set():                  # another independent repeat (plan/seeds.py)
-        desc["seed_set"] = seeds.seed_set()
+    if seed_set:                          # another independent repeat (plan/seeds.py)
+        desc["seed_set"] = seed_set
     h.update(json.dumps(desc, sort_keys=True, default=str).encode())
     return h.hexdigest()[:32]
 
 
 def render_key(scene_path: str, defines: dict, params: dict, variant: str,
-               film: tuple[int, int] | None = None) -> str:
+               film: tuple[int, int] | None = None, seed_set: int = 0) -> str:
     """:func:`cache_key` over the code of an estimator's renders only: the
     key of the renders a run directory keeps (run/stacks.py)."""
-    return cache_key(scene_path, defines, params, variant, film, _renders_by())
+    return cache_key(scene_path, defines, params, variant, film, _renders_by(), seed_set)
 
 
 # ------------------------------ Cache files ----------------------------------
@@ -328,7 +328,7 @@ def ensure(ctx, target: float, expected: float = 0.0,
     spp_per_pass = ref.spp_per_pass if ref is not None else \
         pass_spp(profile.reference_spp_per_pass, int(w) * int(h), max_spp, expected, wanted)
     integrator = jobs.make("path", ctx.params)
-    stream = seeds.stream("reference")
+    stream = ctx.run.stream("reference")
     start, rendered = time.perf_counter(), 0
 
     def need_more(r):

@@ -324,7 +324,7 @@ def timed_render(scene: mi.Scene, integrator: mi.Integrator, spp: int,
     by a shift where spp is a power of two and by a division otherwise, so
     an estimator's first spp of the other kind compiles its kernel (1-7×
     the render), and guided_path compiles its training passes at each new
-    spp; a correction may ask either (docs/measurements.md, 2026-12-05).
+    spp; a correction may ask either (docs/measurements.md#2026-12-05-timed-renders-compile-are).
     ``meta["compile_seconds"]``: the time of the render set aside, if any
     (:attr:`Render.first_seconds`)."""
     first, compiled = _watched(scene, integrator, spp, seed)

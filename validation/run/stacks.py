@@ -22,7 +22,6 @@ import numpy as np
 
 from mcillum import files
 
-from ..plan.seeds import stream
 from ..results import layout
 
 
@@ -146,6 +145,6 @@ def ladder(ctx, compile_=None) -> dict[int, dict[str, Stack]]:
     k = ctx.plan.renders
     # distinct seeds on every rung: rungs are independent samples
     return {spp: kept(ctx, f"spp{spp}", f"rung {rung}", ctx.integrators,
-                      dict.fromkeys(names, spp), k, stream("ladder", rung).take(k), compile_,
-                      ctx.id)
+                      dict.fromkeys(names, spp), k, ctx.run.stream("ladder", rung).take(k),
+                      compile_, ctx.id)
             for rung, spp in enumerate(ctx.plan.ladder)}

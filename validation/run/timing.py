@@ -47,7 +47,8 @@ def timed(executor, job, plan: dict[str, list[int]], rounds: int,
     round, each rendering at every spp of ``plan[name]`` (round i with seed i
     of ``stream``); one timed batch of the executor. Without the warm-up at
     each spp, a cold kernel cache makes one timed render several times the
-    others' and inflates the fitted fixed cost (docs/measurements.md).
+    others' and inflates the fitted fixed cost
+    (docs/measurements.md#2026-12-01-figures-moved-out-code).
     ``spans``, if given, receives (seconds, CPU seconds of other processes)
     of every timed render (run/load.py)."""
     batch, slots = [], []

@@ -47,7 +47,6 @@ from mcillum import files
 
 from mcillum.integrators.core import registry
 
-from ..plan import seeds
 from ..results import (AxisBudget, AxisCrossing, AxisModel, AxisPoint, BudgetAxis, Interval,
                        Try, layout)
 from ..run import load, stacks
@@ -153,7 +152,7 @@ def _on_budget(ctx, todo: dict[str, int], budget: float, k: int, block: int) -> 
     for attempt in range(1 + (CORRECTIONS if cheap else 1)):
         got = stacks.interleaved(
             sub, {n: sub.integrators[n] for n in todo}, todo, k,
-            seeds.stream("budget_axis", block).take(k),
+            ctx.run.stream("budget_axis", block).take(k),
             f"{sub.label} axis {seconds_text(budget)}" + (f" (again: {len(todo)})"
                                                            if attempt else ""), timed=True)
         for n, stack in got.items():
@@ -218,7 +217,7 @@ def _cache_file(ctx) -> tuple[str, str]:
     sub = ctx.display
     key = hashlib.sha256(json.dumps(
         [sub.render_key, list(sub.integrators), dataclasses.asdict(ctx.plan.display),
-         seeds.seed_set(), CACHE_VERSION]).encode()).hexdigest()[:24]
+         ctx.run.seed_set, CACHE_VERSION]).encode()).hexdigest()[:24]
     return layout.kept_renders(ctx.run.out_dir, ctx.id, "axis"), key
 
 

@@ -21,7 +21,6 @@ import numpy as np
 
 from mcillum.integrators.core import registry
 
-from ..plan import seeds
 from ..results import Try
 from ..run import load, stacks, timing
 from ..stats import costs
@@ -42,7 +41,7 @@ ON_BUDGET = 0.10           # a median wall time within ±10 % of its budget
 EQUAL_TIME = 1.5
 #: Re-renders of an estimator that missed a budget: with 2, 2 of 63 render
 #: sets missed by a few % after a first try 40 % slow on a quiet machine
-#: (docs/measurements.md, 2026-12-03).
+#: (docs/measurements.md#2026-12-03-budgets-learner-step-makes).
 CORRECTIONS = 3
 LOADED_CORRECTIONS = 4     # ... where other processes loaded the machine meanwhile
 #: Samples per pixel every estimator gets at the largest budget at least,
@@ -54,13 +53,14 @@ MAX_SCALE = 64             # budgets grow at most this much to outweigh the fixe
 #: efficiency rises with its spp, and between runs whose budgets differ by a
 #: few % it moved by more than its interval said. guided_path on the Cornell
 #: box at 128²: 0.72 at 24 spp, 0.78 at 26, 0.84-0.87 at 44-45; two
-#: quiet runs and a loaded one read 0.715 and 0.837 (docs/measurements.md,
-#: 2026-12-05).
+#: quiet runs and a loaded one read 0.715 and 0.837
+#: (docs/measurements.md#2026-12-05-ms-floor-recording-lingering).
 MIN_LEARNER_SPP = 40
 #: The smallest budget at least (seconds). With launches of 1-5 ms (they
 #: were 13-33 ms when a 60 ms floor was set) six rounds of four renders at
-#: 30 ms had medians within 1-9 % of each other here (docs/measurements.md,
-#: 2026-12-05, "A 30 ms floor").
+#: 30 ms had medians within 1-9 % of each other here
+#: (docs/measurements.md#2026-12-05-ms-floor-recording-lingering, "A 30 ms
+#: floor").
 MIN_BUDGET = 0.03
 #: Other processes using more than this many cores on average during the
 #: timed renders: the machine was loaded, and the report says so.
@@ -78,10 +78,12 @@ def budget_spp(models: dict, path_spp) -> list[int]:
     estimators that fit MIN_SPP in it (:func:`fits`): held to MIN_SPP in
     the smallest, the N-direction estimators (a sample 100× path's) made
     nine of the full profile's sixteen budget pairs 4× larger for every
-    estimator (docs/measurements.md, 2026-12-05). At the smaller budgets the
-    fixed cost is a larger share, and the chart shows what it costs there:
-    held to 10 % of the smallest, the quick profile's budgets were 2-4×
-    larger (docs/measurements.md, 2026-12-03)."""
+    estimator
+    (docs/measurements.md#2026-12-05-n-direction-estimators-largest-budget). At
+    the smaller budgets the fixed cost is a larger share, and the chart shows
+    what it costs there: held to 10 % of the smallest, the quick profile's
+    budgets were 2-4× larger
+    (docs/measurements.md#2026-12-03-quick-profile-cost-reference)."""
     path = models[REFERENCE]
     per_spp = max(path.per_spp_s, 1e-12)
 
@@ -150,7 +152,7 @@ def render(ctx) -> bool:
     # interval. A timed render that compiles anyway, as guided_path's at a
     # new spp, is rendered again: run/renders.timed_render)
     warmed = {n: max(s[n] for s in spps if n in s) for n in spps[-1]}
-    timing.warm(sub.run.executor, job(sub), warmed, seeds.stream("speed_timing").seed(0))
+    timing.warm(sub.run.executor, job(sub), warmed, sub.run.stream("speed_timing").seed(0))
     for j, ((budget, _), spp) in enumerate(zip(ctx.budgets, spps)):
         stacks_j, tries = {}, {n: [] for n in spp}
         todo = {n: s if not j or n not in ctx.budget_tries[-1] else
@@ -159,7 +161,7 @@ def render(ctx) -> bool:
         for attempt in range(1 + LOADED_CORRECTIONS):
             got = stacks.interleaved(
                 sub, {n: sub.integrators[n] for n in todo}, todo, d.renders,
-                seeds.stream("speed", j).take(d.renders),
+                sub.run.stream("speed", j).take(d.renders),
                 f"{sub.label} {budget * 1e3:.0f} ms" + (f" (again: {len(todo)})"
                                                         if attempt else ""), timed=True)
             for n, u in got.items():
@@ -217,11 +219,11 @@ def unreachable(tries: list[Try], budget: float) -> tuple[int, int] | None:
     meets the budget, since the estimator's time jumps between the two
     (guided_path adds a training pass at some spp: at 128², training on ¼
     of its samples, its 12 spp took 30-45 % longer than its 11,
-    docs/measurements.md, 2026-12-03). None
-    otherwise. A smooth estimator's one sample is a few % of a budget, so
-    only a load swing makes such a pair for it (path under load: 8 spp
-    70 ms, 9 spp 95 ms against 78 ms), and only a learner's stops the
-    corrections (:func:`corrected`)."""
+    docs/measurements.md#2026-12-03-budgets-learner-step-makes). None
+    otherwise. A smooth estimator's one sample is a few % of a budget, so only
+    a load swing makes such a pair for it (path under load: 8 spp 70 ms, 9 spp
+    95 ms against 78 ms), and only a learner's stops the corrections
+    (:func:`corrected`)."""
     lo, hi = (1 - ON_BUDGET) * budget, (1 + ON_BUDGET) * budget
     medians: dict[int, list[float]] = {}
     for t in tries:

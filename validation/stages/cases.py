@@ -19,7 +19,6 @@ from mcillum import files
 from mcillum.integrators import UnreachableContentError
 from mcillum.integrators.core import registry
 
-from ..plan import seeds
 from ..results import CaseReference, CaseResult, CaseRow, Sweep, SweepRow, TailNumbers
 from ..run import jobs, renders, stacks
 from ..stats import metrics, statistics, tails
@@ -76,7 +75,7 @@ def render_seeds(ctx) -> None:
     name = ctx.streams["renders"]
     ctx.stacks = {spp: stacks.kept(ctx, kept_file(ctx, name), name, ctx.integrators,
                                    dict.fromkeys(ctx.integrators, spp), k,
-                                   seeds.stream(name).take(k), compile_kernels, ctx.label,
+                                   ctx.run.stream(name).take(k), compile_kernels, ctx.label,
                                    timed=bool(getattr(ctx.plan, "sweep", ())))}
 
 

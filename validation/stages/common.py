@@ -24,7 +24,7 @@ import numpy as np
 from mcillum.errors import NoSignal
 from mcillum.integrators.core import registry, scene_checks
 
-from ..plan import scenes, seeds
+from ..plan import scenes
 from ..results import ReferenceSummary
 from ..run import jobs, references, renders, stacks
 
@@ -54,9 +54,11 @@ def load(ctx) -> None:
     ctx.params = dict(getattr(ctx.plan, "integrator_settings", None)
                       or {"max_depth": ctx.max_depth})
     ctx.scene_key = references.cache_key(info.path, ctx.resolved, ctx.params,
-                                         ctx.run.variant, film=film)
+                                         ctx.run.variant, film=film,
+                                         seed_set=ctx.run.seed_set)
     ctx.render_key = references.render_key(info.path, ctx.resolved, ctx.params,
-                                           ctx.run.variant, film=film)
+                                           ctx.run.variant, film=film,
+                                           seed_set=ctx.run.seed_set)
     ctx.scene_spec = jobs.SceneSpec(os.path.abspath(info.path),
                                     tuple(sorted(ctx.resolved.items())), ctx.scene_key, film)
 
@@ -152,7 +154,7 @@ def release(ctx) -> None:
     cycle still reached lived until Python's collector came round (a
     refusal kept with its traceback was such a cycle: cases._refusal), and
     six such scenes made a traced render of another 3.5× slower (5.5 →
-    19.6 ms; docs/measurements.md, 2026-12-05)."""
+    19.6 ms; docs/measurements.md#2026-12-05-ms-floor-recording-lingering)."""
     ctx.scene = None
     gc.collect()
 
@@ -166,7 +168,7 @@ def compile_kernels(ctx) -> None:
     renders.timed_render: the first one's time is the one kept here.)"""
     if ctx.compile_seconds:
         return
-    seed = seeds.stream("compile").seed()
+    seed = ctx.run.stream("compile").seed()
     batch = [ctx.job(integ, 1, seed) for integ in ctx.integrators.values()]
     ctx.compile_seconds = {n: out.first_seconds for n, out in
                            zip(ctx.integrators, ctx.render(batch, None, timed=True))}
@@ -198,7 +200,7 @@ def stream_renders(ctx, stream: str, name: str, params: dict, spp: int, k: int, 
     tag = "-".join(f"{key}{value}" for key, value in sorted(params.items()))
     return stacks.kept(ctx, f"{stream}{block}-{name}", f"{stream} {tag}",
                        {name: integrator}, {name: spp}, k,
-                       seeds.stream(stream, block).take(k), label=ctx.label,
+                       ctx.run.stream(stream, block).take(k), label=ctx.label,
                        timed=timed)[name]
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from ..plan import seeds
 from ..plan.plans import Sequential
 from ..results import layout
 from ..run import jobs
@@ -32,6 +33,9 @@ class Run:
     #: ``--budget``: a sequential test's budget, × its first look's samples
     #: per pixel, for every check (None: the profile's ``[sequential]``).
     budget: float | None = None
+    #: ``--seed-set``: which independent repeat every seed stream hands out
+    #: (plan/seeds.py; :meth:`stream`).
+    seed_set: int = 0
     #: Renders done by this process and renders loaded from the run
     #: directory (stacks.kept): a run that rendered none is a re-run.
     rendered: int = 0
@@ -48,6 +52,10 @@ class Run:
     def growth(self, profile_budget: float) -> float:
         """The budget of a sequential test: ``--budget``, else the profile's."""
         return self.budget if self.budget is not None else profile_budget
+
+    def stream(self, name: str, block: int = 0) -> seeds.Stream:
+        """Block ``block`` of seed stream ``name`` in the run's seed set."""
+        return seeds.stream(name, block, self.seed_set)
 
     def step(self, what: str, steps: int = 1) -> None:
         if self.progress is not None:

@@ -49,7 +49,6 @@ from mcillum.integrators.core import registry
 from ..checks import convergence
 from ..results import (BiasAtN, Calibration, EqualRays, GlossySettings, Quadrature,
                        SettingScore, Settings)
-from ..plan import seeds
 from ..run import jobs, references, stacks
 from ..stats import costs, metrics
 from . import common
@@ -140,7 +139,7 @@ def _timings(ctx, groups: dict, spp) -> dict:
         made[against] = ctx.integrators.get(against) or jobs.make(against, dict(ctx.params))
         found = stacks.kept(ctx, f"quadrature{g}-timing-{against}", f"timing {rays}", made,
                             {**{m: spp for m in members}, against: rays}, TIMED,
-                            seeds.stream("quadrature", g).take(TIMED), label=ctx.label,
+                            ctx.run.stream("quadrature", g).take(TIMED), label=ctx.label,
                             timed=True)
         out.update({m: float(np.median(found[m].seconds)) for m in members})
         out[against, rays] = float(np.median(found[against].seconds))

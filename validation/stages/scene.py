@@ -32,7 +32,6 @@ import numpy as np
 from mcillum import files
 
 from ..checks import convergence, evidence
-from ..plan import seeds
 from ..results import Convergence, EstimatorResult, RunStats, SceneResult, Unbiasedness
 from ..run import stacks
 from ..stats import metrics, statistics, tails
@@ -192,7 +191,7 @@ def more_renders(ctx, name: str, have: int, look: int) -> dict[int, np.ndarray]:
     every rung, seeds ``have`` … 2·have − 1 of the rung's block (kept)."""
     out = {}
     for rung, spp in enumerate(ctx.plan.ladder):
-        seeds_ = seeds.stream("ladder", rung).take(2 * have)[have:]
+        seeds_ = ctx.run.stream("ladder", rung).take(2 * have)[have:]
         out[spp] = stacks.kept(ctx, kept_file(ctx, f"spp{spp}-{name}-look{look}"),
                                f"rung {rung} look {look}", {name: ctx.integrators[name]},
                                {name: spp}, have, seeds_, label=ctx.label)[name].images[..., :3]
@@ -257,7 +256,7 @@ def save_images(ctx) -> None:
         images = ctx.stacks[top][name].images
         files.write_exr(f"{d}/{name}_spp{top}.exr", images[0],
                         {"integrator": name, "spp": top,
-                         "seed": seeds.stream("ladder", rung).seed(0)})
+                         "seed": ctx.run.stream("ladder", rung).seed(0)})
         found = ctx.evidence.get(name)
         test = None if found is None else found.comparison
         files.write_exr(f"{d}/{name}_spp{top}_mean.exr", images.mean(axis=0),

@@ -82,16 +82,17 @@ CONFIRM = 4
 #: show as no firefly, and a confirming batch at higher spp averages each
 #: event below the firefly threshold, so it confirms whenever it misses the
 #: tail too (seed set 71: cosine sampling on probe_spheres_interior's sunless
-#: map, one pixel of the rough gold sphere; docs/measurements.md,
-#: 2026-12-04). Such a fail is confirmed on this many times the samples,
-#: rendered at as few spp as a seed block's renders allow: an event is
-#: a firefly there, and the rules weigh it. Not at the first look's spp
-#: where that is more: a sun split's first look is the ladder's top rung
-#: alone, and there cosine sampling's glossy hits at a silhouette pixel of
-#: glossy_phong stayed at 1.5-6.7× the reference in 256 renders of 1 024
-#: spp, and a correct estimator failed (seed set 218; docs/measurements.md,
-#: 2026-12-06). A darker image mean is what a pdf off, a missing light or
-#: a clamp shows: its confirmation stays at CONFIRM.
+#: map, one pixel of the rough gold sphere;
+#: docs/measurements.md#2026-12-04-confirming-fail-tail-would). Such a fail is
+#: confirmed on this many times the samples, rendered at as few spp as a seed
+#: block's renders allow: an event is a firefly there, and the rules weigh it.
+#: Not at the first look's spp where that is more: a sun split's first look is
+#: the ladder's top rung alone, and there cosine sampling's glossy hits at a
+#: silhouette pixel of glossy_phong stayed at 1.5-6.7× the reference in 256
+#: renders of 1 024 spp, and a correct estimator failed (seed set 218;
+#: docs/measurements.md#2026-12-06-guided-path-learns-sums-records). A darker
+#: image mean is what a pdf off, a missing light or a clamp shows: its
+#: confirmation stays at CONFIRM.
 CONFIRM_UNSEEN = 16
 
 #: Renders in one batch at most: a block of the sequential seed streams.
@@ -133,7 +134,7 @@ def batch(ctx, name: str, look: int, spp: int, k: int,
     images = stacks.kept(ctx, kept_file(ctx, f"{stream}-{look}-{tag or name}"),
                          f"{stream}[{look}]",
                          {name: ctx.integrators[name]}, {name: spp}, k,
-                         seeds.stream(stream, look).take(k), label=ctx.label)[name].images
+                         ctx.run.stream(stream, look).take(k), label=ctx.label)[name].images
     return spp, images[..., :3]
 
 
@@ -201,7 +202,8 @@ LOOKS = 20
 #: of the full profile's seven heavy-tail cases asked for 1e6-5e7 samples
 #: per pixel at every look, 8-80× the budget of 131 072, and none decided
 #: in four full runs: their seven looks each, about 150 s of a run, ended
-#: where the split map decided them (docs/measurements.md, 2026-12-06).
+#: where the split map decided them
+#: (docs/measurements.md#2026-12-06-real-sun-test-stops).
 BEYOND_BUDGET = 8
 
 
@@ -328,7 +330,7 @@ def _beside(control, look: int, spp: int, renders: int, around, reference_spp):
 #: sun_sky's failure case the last look, at 64× the reference's spp, read
 #: "brighter at 1 px" in seed sets 98 and 103, and path beside the
 #: confirming batch read it too: 127 s of confirming renders in seed set 98
-#: (docs/measurements.md, 2026-12-05).
+#: (docs/measurements.md#2026-12-05-path-asked-first-far).
 PATH_FIRST = 16
 
 

@@ -67,7 +67,6 @@ import numpy as np
 from mcillum import files
 from mcillum.integrators.core import registry
 
-from ..plan import seeds
 from ..results import Budget, BudgetRun, Interval, Ratio, Speed, Try, layout
 from ..run import load, probe, references, timing
 from ..run.stacks import Stack
@@ -113,7 +112,7 @@ def time_costs(ctx) -> None:
         sub, d = ctx.display, ctx.plan.display
         ctx.timings = timing.timed(sub.run.executor, _job(sub),
                                    dict.fromkeys(sub.integrators, list(PILOT_SPP)),
-                                   d.repeats, seeds.stream("speed_timing"), ctx.timing_load)
+                                   d.repeats, ctx.run.stream("speed_timing"), ctx.timing_load)
     ctx.costs = {n: costs.fit_cost({s: [min(t)] * 2 for s, t in spps.items()})
                  for n, spps in ctx.timings.items()}
     if ctx.budget_path_spp is None:
@@ -354,7 +353,7 @@ def save_display(ctx) -> None:
         layers = {"flip": ctx.flip_maps[n][..., None]} if n in ctx.flip_maps else None
         files.write_exr(f"{out}/{n}.exr", stack.images[0].astype(np.float32),
                         {"integrator": n, "spp": stack.spp,
-                         "seed": seeds.stream("speed", len(ctx.budgets) - 1).seed(0),
+                         "seed": ctx.run.stream("speed", len(ctx.budgets) - 1).seed(0),
                          "render_seconds": float(stack.seconds[0]),
                          "budget_seconds": budget}, layers)
 

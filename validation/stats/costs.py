@@ -133,7 +133,8 @@ def _log_se(values) -> float:
 #: machine's cores they used: load comes and goes on longer time scales than
 #: a set of renders. With a busy loop on one of two cores, efficiency ÷ path
 #: moved from a quiet run by up to 16 % here and 20 % on CI, where the
-#: loaded set's interval claimed ±15 % (docs/measurements.md, 2026-12-05).
+#: loaded set's interval claimed ±15 %
+#: (docs/measurements.md#2026-12-05-loaded-machine-intervals).
 LOAD_SPREAD = 0.15
 
 

@@ -118,11 +118,11 @@ def against_fresh_path(first: Comparison, y, path, alpha: float, pixels) -> np.n
     Seed set 877's lone_sphere_studio: a reference pixel 4.6 of its standard
     errors high (0.2105 against 0.20885 from path at 16.8 M fresh spp) was
     "replicated" by bayesian_importance's 990 fresh renders, which read
-    0.2088 (docs/measurements.md, 2026-12-07). Against path's fresh renders
-    a rejection comes back with probability at most α whatever the first
-    test saw; a bias comes back with the power of a test against a
-    reference as precise as path's renders (the caller renders them with at
-    least the reference's samples where it can)."""
+    0.2088 (docs/measurements.md#2026-12-07-seed-set-fail-reference). Against
+    path's fresh renders a rejection comes back with probability at most α
+    whatever the first test saw; a bias comes back with the power of a test
+    against a reference as precise as path's renders (the caller renders them
+    with at least the reference's samples where it can)."""
     against = Moments.of(np.asarray(path, np.float64))
     still, _, _ = replicate(first, y, against, alpha, pixels,
                             np.zeros(first.pooled_p.shape, bool))
