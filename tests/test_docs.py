@@ -216,10 +216,9 @@ def too_long(readme: Path, limit: int = README_MAX_LINES) -> str | None:
 #: or (the old way) a date after the file's name, which heads several entries.
 CITED = re.compile(r"measurements\.md(#[\w.-]+)?(?:,?\s+(?:#:?\s*)?(20\d\d-\d\d-\d\d))?")
 
-#: Code whose owners are rewriting it (issue 67: the guiding split, the speed
-#: stage), whose date citations they convert; none may be added elsewhere.
-DATED_FOR_NOW = {"integrators/guiding/guide.py", "integrators/guiding/guided_path.py",
-                 "validation/stages/speed.py"}
+#: Code whose owners are rewriting it (issue 65: the guiding split), whose
+#: date citations they convert; none may be added elsewhere.
+DATED_FOR_NOW = {"integrators/guiding/guide.py", "integrators/guiding/guided_path.py"}
 
 
 def code_files(root: Path = ROOT) -> list[Path]:

@@ -100,7 +100,8 @@ def time_costs(ctx) -> None:
     reported, with intervals, is the line through every pilot render
     (:func:`measure_speed`).
     Rounds at spp near the smallest budget used to follow; the budgets'
-    corrections made them redundant (docs/measurements.md, 2026-12-03).
+    corrections made them redundant
+    (docs/measurements.md#2026-12-03-quick-profile-cost-reference).
     Before the run's first timed render, the machine's probe (run/probe.py);
     a re-run whose timings are all kept takes none."""
     ctx.run.executor.timed_on()                         # (forget earlier stages')
@@ -188,7 +189,8 @@ def measure_speed(ctx) -> None:
                              if ratios[n].kind != "off_budget"})
     # the pilot's renders, every repeat: a line through the budgets' renders
     # too gave fixed costs of -8 to -14 ms [intervals below 0], since a sample
-    # costs less at large spp than at 1-16 (docs/measurements.md, 2026-12-03)
+    # costs less at large spp than at 1-16
+    # (docs/measurements.md#2026-12-03-quick-profile-cost-reference)
     models = {n: costs.fit_cost(ctx.timings[n]) for n in ctx.costs}
     others, cores, loaded = _load(ctx)
     flips = {n: metrics.flip(u.images[0], r) for n, u in ctx.budget_stacks[-1].items()}
@@ -233,8 +235,9 @@ def learner_notes(found: list[Budget]) -> list[str]:
     efficiency ÷ path at each of the budgets ``found``: its training is paid
     again in every render, so a larger budget amortises it and the figure
     rises with the budget (guided_path on the Cornell box: 0.72 at 24 spp,
-    0.86 at 45, docs/measurements.md, 2026-12-05). Each is net of its own
-    budget's reference share; the ranking reads the largest."""
+    0.86 at 45, docs/measurements.md#2026-12-05-ms-floor-recording-lingering).
+    Each is net of its own budget's reference share; the ranking reads the
+    largest."""
     notes = []
     names = [n for n in found[-1].estimators if n != REFERENCE and registry.facts(n).learns]
     for name in names:
