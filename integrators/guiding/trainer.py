@@ -21,10 +21,12 @@ from .records import MAX_RECORDS, TRAIN_DEPTH, Records, Tally
 #: Training iterations at most, by default (each traces the kernel again).
 PASSES = 16
 #: Vertex records learned from per iteration at most: the rest of a long
-#: iteration renders with its density but records only its pixels' moments
-#: (learning costs host time per record; the records of a few iterations of
-#: this size already resolve a room's sun patch, benchmarks/guide_bound.py).
-ITERATION_RECORDS = 1 << 24
+#: iteration renders with its density but records nothing. A recording
+#: launch cost 2.5× a guided one per sample at 256² (twelve scatters per
+#: vertex) and its records as much again on the host; and the oracle bound
+#: moved little from 2 M to 118 M training paths (learned density 7.8 →
+#: 7.1 of cosine sampling's 56; docs/measurements.md, 2026-12-07).
+ITERATION_RECORDS = MAX_RECORDS
 #: Guiding goes on while the learned mixture is predicted to leave at most
 #: this share of BSDF sampling's variance of the indirect light
 #: (Guide.variance_ratio), and while an iteration it drew measured at most
