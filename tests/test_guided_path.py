@@ -188,6 +188,55 @@ def test_training_passes_double_and_stay_within_their_share(llvm):
         assert all(b >= 2 * a for a, b in zip(passes, passes[1:]))
 
 
+def test_budget_passes_double_while_the_rest_could_draw_one_twice_as_long(llvm):
+    """Müller et al.'s rule: iterations 1, 2, 4, … spp; after each the rest
+    of the budget is at least twice it, and one more would break that; at
+    most ``passes`` of them; the share trained grows with the budget."""
+    budget_passes = guide().budget_passes
+    assert budget_passes(1) == budget_passes(2) == [] and budget_passes(3) == [1]
+    for spp in (4, 7, 16, 64, 100, 1000, 4096):
+        passes = budget_passes(spp)
+        assert passes == [2 ** i for i in range(len(passes))]
+        assert spp - sum(passes) >= 2 * passes[-1]
+        assert spp - sum(passes) - 2 * passes[-1] < 4 * passes[-1]       # (no room for one more)
+    assert budget_passes(1000, 3) == [1, 2, 4]
+    assert sum(budget_passes(100)) < sum(budget_passes(1000)) < sum(budget_passes(10_000))
+
+
+def test_each_iteration_weighs_by_its_inverse_variance(llvm):
+    """moments.relative_variances on pixels of known spread (per pixel μ in
+    0.1-2, one sample's relative variance 0.5, 2 and 1 in three iterations,
+    the last of one sample a pixel) finds them; the weights are then ∝ spp / variance, shrunk
+    towards ∝ spp for few samples, and ∝ spp where a variance is not a
+    positive number."""
+    g, rng = guide(), np.random.default_rng(11)
+    pixels, mu = 4096, rng.uniform(0.1, 2.0, 4096)
+
+    def moments(spp, rel):
+        m = g.PixelMoments()
+        for h in (0, 1):
+            n = (spp + 1 - h) // 2
+            x = mu[:, None] * (1 + np.sqrt(rel) * rng.standard_normal((pixels, n)))
+            m.add([(x.sum(axis=1), (x * x).sum(axis=1), n) if k == h else
+                   (np.zeros(pixels), np.zeros(pixels), 0) for k in (0, 1)])
+        return m
+    got = g.relative_variances([moments(8, 0.5), moments(32, 2.0), moments(1, 1.0)])
+    weight = mu ** 2 / (mu ** 2 + g.RELATIVE_EPSILON)      # (relMSE's weighing of a pixel)
+    # (each within 25 %: the pixels' weight reads a mean of 41 samples a
+    # pixel, whose noise raises all three alike, 16 % here; their ratios,
+    # which weigh the images, within 5 and 10 %)
+    for v, rel in zip(got, (0.5, 2.0, 1.0)):
+        assert abs(v / (rel * np.average(weight)) - 1) < 0.25, (got, rel)
+    assert abs(got[1] / got[0] / 4 - 1) < 0.05, got
+    assert abs(got[2] / got[0] / 2 - 1) < 0.1, got
+    many = [1 << 30, 1 << 30]
+    w = g.inverse_variance_weights([8, 32], [0.5, 2.0], many)
+    assert np.allclose(w, [0.5, 0.5], rtol=1e-3)              # (8/0.5 = 32/2)
+    few = g.inverse_variance_weights([8, 32], [0.5, 2.0], [16, 64])
+    assert abs(few[0] - 0.2) < 0.01                          # (∝ spp, nearly)
+    assert g.inverse_variance_weights([8, 32], [float("nan"), 1.0]) == [0.2, 0.8]
+
+
 def concentrated_records(res, rng, records=200_000, patch=(5, 6), light=50.0, noise=1.0):
     """Records on a res² square: light ``light`` in one fine cell ``patch``
     (row, column), exponential noise of mean ``noise`` everywhere, records
@@ -341,9 +390,9 @@ def test_where_light_is_mostly_direct_the_bsdf_takes_the_larger_share(llvm):
     assert guided.training[-1]["bsdf_share"] < 0.6, guided.training
 
 
-def test_the_training_images_join_the_result_weighted_by_their_spp(llvm):
-    """Each training pass renders an unbiased image too: averaged in by spp
-    (the default), the result at 64 spp (16 of them training, as asked) keeps its mean
+def test_the_training_images_join_the_result(llvm):
+    """Each training pass renders an unbiased image too: combined in by
+    inverse variance (the default; on 256 pixels nearly by spp), the result at 64 spp (16 of them training, as asked) keeps its mean
     and varies less than the last pass alone (0.75× if learning changed
     nothing; 0.55× on the Cornell box at 16², where what 16 spp learn is a
     poor density). With no training both are the same image."""
