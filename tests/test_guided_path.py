@@ -392,7 +392,8 @@ def test_where_light_is_mostly_direct_the_bsdf_takes_the_larger_share(llvm):
 
 def test_the_training_images_join_the_result(llvm):
     """Each training pass renders an unbiased image too: combined in by
-    inverse variance (the default; on 256 pixels nearly by spp), the result at 64 spp (16 of them training, as asked) keeps its mean
+    inverse variance (the default; on 256 pixels nearly by spp), the result
+    at 64 spp (16 of them training, as asked) keeps its mean
     and varies less than the last pass alone (0.75× if learning changed
     nothing; 0.55× on the Cornell box at 16², where what 16 spp learn is a
     poor density). With no training both are the same image."""

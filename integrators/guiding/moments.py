@@ -18,7 +18,8 @@ class PixelMoments:
         self.halves = [[None, None, 0], [None, None, 0]]
 
     def add(self, moments) -> None:
-        """Add ``moments`` (as :meth:`.records.Records.pixel_moments` gives them; None: nothing)."""
+        """Add ``moments`` (as :meth:`.records.Records.pixel_moments` gives
+        them; None: nothing)."""
         if moments is None:
             return
         for half, (first, second, n) in zip(self.halves, moments):

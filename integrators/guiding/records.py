@@ -33,11 +33,12 @@ class Records:
     its voxel, the point its continuation hit (far along it where it
     escaped), the normal of its guide frame, the throughput after it, the
     radiance gathered before its continuation and after the emission the
-    continuation hit; always, per path its radiance, whose moments per
-    pixel :meth:`pixel_moments` sums (radiance and throughput as their mean
-    over the channels: only learning and the passes' weights read them). Device buffers in JIT variants, dicts in
-    scalar ones. A JIT wavefront holds each pixel's ``spp`` samples side by
-    side (Mitsuba's sampling integrator: lane // spp is the pixel)."""
+    continuation hit; always, per path its radiance, whose moments per pixel
+    :meth:`pixel_moments` sums (radiance and throughput as their mean over
+    the channels: only learning and the passes' weights read them). Device
+    buffers in JIT variants, dicts in scalar ones. A JIT wavefront holds
+    each pixel's ``spp`` samples side by side (Mitsuba's sampling
+    integrator: lane // spp is the pixel)."""
 
     def __init__(self, lanes: int, depth: int, spp: int, grid=None, far: float = 0.0):
         self.lanes, self.depth, self.spp, self.grid, self.far = lanes, depth, spp, grid, far
@@ -101,8 +102,9 @@ class Records:
                          & (dr.dot(g, wo_world) > 0))
         if not dr.is_jit_v(mi.Float):
             if keep:
-                self.rows[(lane, depth)] = [voxel, channel_mean(β), channel_mean(L), channel_mean(L),
-                                            mi.Point3f(si.p), mi.Point3f(far), mi.Vector3f(g)]
+                L_ = channel_mean(L)
+                self.rows[(lane, depth)] = [voxel, channel_mean(β), L_, L_, mi.Point3f(si.p),
+                                            mi.Point3f(far), mi.Vector3f(g)]
             return
         i = lane * self.depth + depth
         dr.scatter(self.voxel, voxel + 1, i, keep)

@@ -140,11 +140,11 @@ class Trainer:
         per = max(1, MAX_RECORDS // (lanes * self.depth))      # spp per recorded launch
         recorded = min(spp, max(1, ITERATION_RECORDS // (lanes * self.depth)))
         sizes = [min(per, recorded - k) for k in range(0, recorded, per)]
-        records, launches, image = [], [], None
+        records, launches = [], []
         for k, n in enumerate(sizes + ([spp - recorded] if spp > recorded else [])):
             rec = Records(lanes * n, self.depth if k < len(sizes) else 0, n, self.grid, self.far)
-            part = it.launch(self.scene, self.sensor, pass_seed(pass_seed(self.seed, i), 1000 + k),
-                             n, True, True, self.guide, rec)
+            seed = pass_seed(pass_seed(self.seed, i), 1000 + k)
+            part = it.launch(self.scene, self.sensor, seed, n, True, True, self.guide, rec)
             moments.add(rec.pixel_moments())
             launches.append((n, part))
             if rec.depth:
