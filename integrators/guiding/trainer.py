@@ -39,6 +39,12 @@ PAYS_BELOW = 0.8
 #: variance at 2 spp and 0.98 at 4 spp (16 384 samples), heavy tails
 #: swinging the estimate; 2¹⁶ samples are 1 spp at 256², 4 at 128².
 MEASURED_FROM = 1 << 16
+#: Records a density needs before its predicted share may stop the
+#: training: one learned from fewer is coarse and near uniform, and
+#: predicts no gain where more records would find one (sunlit_room at 24²
+#: learned from its first 1 spp, 576 paths, predicted 0.96 and never
+#: guided; main's first pass of ⅛ of 256 spp had about this many).
+JUDGED_FROM = 1 << 15
 
 
 def budget_passes(spp: int, passes: int = PASSES) -> list[int]:
@@ -170,13 +176,14 @@ class Trainer:
 
     def learn(self) -> bool:
         """Rebuild the spatial tree and its leaves' densities from every
-        record so far. Returns whether the next iteration draws with it:
-        False where nothing arrives indirectly, or where it is predicted to
-        leave more than ``max_variance_ratio`` of BSDF sampling's variance
-        (a guide that cuts little of the variance costs more than it buys:
-        sky_sphere and probe_spheres predict 0.86-0.98 and rendered
-        1.3-2.4× path's time for no lower error); the rest then renders as
-        mis."""
+        record so far; the next iteration draws with them unless they are
+        predicted to leave more than ``max_variance_ratio`` of BSDF
+        sampling's variance (a guide that cuts little of the variance costs
+        more than it buys: sky_sphere and probe_spheres predict 0.86-0.98
+        and rendered 1.3-2.4× path's time for no lower error). Returns
+        whether to train on: False where nothing arrives indirectly, or
+        where a density learned from at least :data:`JUDGED_FROM` records
+        does not pay; the rest then renders as mis."""
         it = self.integrator
         guide = Guide.learn(self.tally, it.spatial_threshold, it.directional_threshold)
         ratio = guide.variance_ratio(it.bsdf_fraction)
@@ -185,7 +192,7 @@ class Trainer:
                             variance_ratio=ratio)
         if not guide.trained_leaves or not ratio <= it.max_variance_ratio:
             self.guide = None
-            return False
+            return bool(guide.trained_leaves) and self.tally.records < JUDGED_FROM
         self.guide = guide.device(it.bsdf_fraction)
         return True
 
