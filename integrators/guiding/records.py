@@ -157,18 +157,23 @@ class Records:
         if not dr.is_jit_v(mi.Float):
             return None
         n = self.spp
-        # (summed on the device, after the launch: numpy's sums along rows
-        # of a few samples took 30 ms a pass at 256² beside Dr.Jit's
-        # threads; n opaque, so that every spp shares one kernel. Summed in
-        # the render's kernel instead, every new spp compiled that kernel)
+        # (summed on the device, after the launch, a pixel's lanes block by
+        # block in a fixed order: numpy's sums along rows of a few samples
+        # took 30 ms a pass at 256² beside Dr.Jit's threads; summed in the
+        # render's kernel, every new spp compiled that kernel; summed by
+        # atomic adds, their order varied, the images' weights with it, and
+        # a render was not its own replay bit for bit)
         lane = dr.arange(mi.UInt32, self.lanes)
-        per = dr.opaque(mi.UInt32, n)
-        slot = lane // per * 2 + lane % per % 2
-        sums = [dr.zeros(mi.Float, 2 * self.pixels) for _ in range(2)]
-        dr.scatter_reduce(dr.ReduceOp.Add, sums[0], self.path, slot)
-        dr.scatter_reduce(dr.ReduceOp.Add, sums[1], dr.square(self.path), slot)
-        dr.eval(sums)
-        first, second = (np.array(a, np.float64).reshape(self.pixels, 2) for a in sums)
+        odd = lane % dr.opaque(mi.UInt32, n) % 2 == 1
+        sums = []
+        for x in (self.path, dr.square(self.path)):
+            whole = dr.block_reduce(dr.ReduceOp.Add, x, n, mode="evaluated")
+            odds = dr.block_reduce(dr.ReduceOp.Add, dr.select(odd, x, 0.0), n,
+                                   mode="evaluated")
+            sums.append((np.array(whole - odds, np.float64), np.array(odds, np.float64)))
+        (first_even, first_odd), (second_even, second_odd) = sums
+        first = np.stack([first_even, first_odd], axis=1)
+        second = np.stack([second_even, second_odd], axis=1)
         return [(first[:, h], second[:, h], (n + 1 - h) // 2) for h in (0, 1)]
 
     def learned(self, res: int, parallax: bool = True):
