@@ -145,7 +145,7 @@ def main(argv=None) -> None:
                         help="guided_path property, key=value (repeatable)")
     args = parser.parse_args(argv)
     renders.set_variant("llvm_ad_rgb")
-    from mcillum.integrators.guiding import guide as guide_mod
+    from mcillum.integrators.guiding import directional, guide as guide_mod, spatial
 
     scene = renders.load_scene(scenes.path("sunlit_room"), res=args.res, gap="hole",
                                sun=IRRADIANCE)
@@ -164,17 +164,17 @@ def main(argv=None) -> None:
     guide_mod.Guide.learn = classmethod(learn)
     g, share = learned["guide"], integrator.bsdf_fraction
     pixels = args.res * args.res
-    grid = guide_mod.grid_of(scene.bbox())
+    grid = spatial.grid_of(scene.bbox())
     hits = first_hits(scene, *pixel_centres(args.res), 1)
-    node = g.voxel_node[np.array(guide_mod.voxel_of(hits.p, grid))]
+    node = g.voxel_node[np.array(spatial.voxel_of(hits.p, grid))]
     # (what the plugin samples from: each leaf's BSDF share, quantized pmf
     # and learned distance)
     tables = {k: np.array(v) for k, v in g.device(share).items()}
-    row = tables["leaf"][np.array(guide_mod.voxel_of(hits.p, grid))]
+    row = tables["leaf"][np.array(spatial.voxel_of(hits.p, grid))]
     alpha = tables["alpha"][row]
     quantized = tables["pmf"].reshape(-1, g.res * g.res)[row]
     from mcillum.integrators.guiding import guided_path as gp
-    at = guide_mod.on_plane(guide_mod.anchor_of(hits.p, grid), hits.p, gp.guide_frame(hits).n)
+    at = spatial.on_plane(spatial.anchor_of(hits.p, grid), hits.p, gp.guide_frame(hits).n)
     centre = np.array(at).T.reshape(pixels, 3)
     anchors = (centre, tables["distance"][row])
     rows = [("cosine", 1, np.full((pixels, 1), 1.0), np.ones(pixels), None),
@@ -186,8 +186,8 @@ def main(argv=None) -> None:
         np.add.at(by_leaf, node, norm)
         for name, m in (("oracle point", means), ("oracle leaf", by_leaf[node])):
             total = m.sum(axis=1, keepdims=True)
-            pmf = np.where(total > 0, (1 - guide_mod.FLOOR) * m / np.maximum(total, 1e-30)
-                           + guide_mod.FLOOR / (R * R), 1.0 / (R * R))
+            pmf = np.where(total > 0, (1 - directional.FLOOR) * m / np.maximum(total, 1e-30)
+                           + directional.FLOOR / (R * R), 1.0 / (R * R))
             rows.append((f"{name}, R = {R}", R, pmf, np.full(pixels, share), None))
     print("| strategy | cells | relative variance of one sample | share reaching the patch |")
     print("|---|---|---|---|")

@@ -73,7 +73,7 @@ def test_a_learner_replays_each_pass_and_still_learns(llvm, scene_name):
     training passes, with and without a guide, and its image's) is
     replayed and what it learns from still runs, so the guide, what it
     learned and the image equal the traced render's exactly, at spp with
-    no training, one pass and two; a subclass is traced."""
+    no training, one iteration and more; a subclass is traced."""
     scene = renders.load_scene(scenes.path(scene_name), res=8)
     book = replays.Replays()
     # (every learned density kept: the image's pass samples with a guide)
@@ -83,7 +83,7 @@ def test_a_learner_replays_each_pass_and_still_learns(llvm, scene_name):
     assert not registry.facts("guided_path").freezable
     assert registry.facts("guided_path").freezes_passes
     passes = set()
-    for spp in (4, 16, 64):
+    for spp in (1, 4, 16):
         for seed in SEEDS:
             traced = renders.render(scene, integrator, spp, seed).image
             learned = integrator.training
@@ -93,16 +93,18 @@ def test_a_learner_replays_each_pass_and_still_learns(llvm, scene_name):
             assert integrator.frozen_pass is None
             assert np.array_equal(traced, replayed), (spp, seed)
             passes.add(len(learned))
-    assert passes == {0, 1, 2}
+    assert {0, 1} <= passes
     # a replay launches the traced render's path kernels and no more (left
     # dependent on the pass, the sampler's state was one more of each)
     traced = _path_kernels(lambda: renders.render(scene, integrator, 64, 9))
     assert _path_kernels(lambda: renders.render(scene, integrator, 64, 9, launcher)) \
         == traced == 1 + len(integrator.training)
     frozen = book._frozen[id(integrator)][1]
-    # (one per pass of each spp at most, never one per seed: 5-6 here; the
-    # guide's arrays mapped from numpy's memory made 5-14)
-    assert 0 < frozen.n_recordings <= 3 * 3
+    # (one per launch of each spp and kind (with or without a guide,
+    # recording vertices or not) and again where a guide's arrays differ in
+    # which have the same size, never one per seed: 9 kinds of 28 launches
+    # here, 15 recordings on the Cornell box)
+    assert 0 < frozen.n_recordings <= 20
     assert not book.refused
     subclass = type("Twin", (plugin_class("guided_path"),), {})(mi.Properties())
     assert book.launcher(scene, subclass, "guided_path") is None

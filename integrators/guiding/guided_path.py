@@ -1,7 +1,10 @@
 """Path guiding: a path tracer (as `mis`) whose continuation direction comes
 from a one-sample mixture of the BSDF and a directional distribution learned
 from the renderer's own paths while it renders (after Müller et al. 2017,
-"Practical Path Guiding for Efficient Light-Transport Simulation")."""
+"Practical Path Guiding for Efficient Light-Transport Simulation"). What it
+learns is in the modules beside it: the grid and anchors (spatial), the
+tree (guide), the directional quadtree (directional), the records (records),
+the tables it samples (tables), the iterations (trainer)."""
 
 from __future__ import annotations
 
@@ -12,127 +15,10 @@ from ..core import registry
 from ..core.estimator import IlluminationEstimator, over_pdf
 from ..mc.bsdf_sampling import sample_bsdf_direction
 from ..mc.emitter_sampling import emitter_direction_pdf, sample_emitter_direction
-from .guide import (FAR, GRID, MAX_RECORDS, PASSES, PAYS_BELOW, SLOTS_PER_CELL, TRAIN_DEPTH,
-                    TRAIN_FRACTION, UNSEEN_ABOVE, Guide, PixelMoments, Records, Tally, anchor_of,
-                    grid_of, measured_ratios, on_plane, pass_seed, square_cell, take,
-                    training_passes, voxel_of)
-
-# ----------------------------- Strategy ---------------------------------
-# The learned part is a piecewise-constant density on the unit square, warped
-# to the hemisphere by the cosine warp (Shirley-Chiu's concentric map, as
-# mi.warp.square_to_cosine_hemisphere) in a frame built from the shading
-# normal alone, turned to the side the path arrived from: a uniform pmf is
-# cosine sampling, and a pmf ∝ the mean L_i over each of the res² cells makes
-# p ∝ L_i cos θ (the product a diffuse vertex wants). Directions on the
-# other side get density 0: the BSDF's share covers them.
-#     p(ω) = pmf[cell(ω)] · res² · cos θ / π
-# It is the density seen from the vertex's anchor c (guide.anchor_of), as
-# if the light lay on a sphere about c of radius r (the leaf's learned
-# distance, at least 2|x − c|): a vertex x draws ω_c, then ω towards
-# y = c + r ω_c (parallax), and
-#     p_x(ω) = p(ω_c) · t² / (r² cos θ_y),   y = x + t ω on the sphere,
-# cos θ_y the angle between ω and the sphere's normal ω_c at y.
-
-
-def guide_frame(si) -> mi.Frame3f:
-    """The frame of the shading normal turned to the side of ``si.wi``: it
-    depends on the normal and side only (Frame3f's coordinate system), so
-    every surface of one orientation in a cell shares it."""
-    return mi.Frame3f(si.sh_frame.n * dr.select(si.wi.z >= 0, 1.0, -1.0))
-
-
-def to_guide(si, w_world: mi.Vector3f) -> mi.Vector3f:
-    """World direction → the guide's frame at ``si`` (the side the path
-    arrived from is z > 0)."""
-    return guide_frame(si).to_local(w_world)
-
-
-def from_guide(si, w: mi.Vector3f) -> mi.Vector3f:
-    """The inverse of :func:`to_guide`."""
-    return guide_frame(si).to_world(w)
-
-
-def anchor_radius(x: mi.Point3f, c: mi.Point3f, d: mi.Float) -> mi.Float:
-    """Radius of the sphere about the anchor ``c`` that the vertex ``x``
-    maps through: the learned distance ``d``, at least twice x's distance
-    from c (x then lies inside it, and cos θ_y ≥ √3/2); 0 where no distance
-    was learned (ω_c = ω)."""
-    return dr.select(d > 0, dr.maximum(d, 2 * dr.norm(x - c)), 0.0)
-
-
-def from_anchor(x: mi.Point3f, w_c: mi.Vector3f, c: mi.Point3f, d: mi.Float) -> mi.Vector3f:
-    """The direction from ``x`` to the point of the sphere about ``c``
-    (:func:`anchor_radius`) in direction ``w_c`` from its centre."""
-    r = anchor_radius(x, c, d)
-    return dr.select(r > 0, dr.normalize(c + r * w_c - x), w_c)
-
-
-def to_anchor(x: mi.Point3f, w: mi.Vector3f, c: mi.Point3f, d: mi.Float) -> tuple:
-    """(ω_c, dω_c/dω): the inverse of :func:`from_anchor` and its Jacobian.
-    From x inside the sphere the ray x + t ω leaves it once: t = −b + √(b² −
-    (|o|² − r²)), o = x − c, b = ω·o."""
-    r = anchor_radius(x, c, d)
-    o = x - c
-    b = dr.dot(w, o)
-    t = -b + dr.safe_sqrt(dr.square(b) - (dr.squared_norm(o) - dr.square(r)))
-    w_c = (o + t * w) / dr.maximum(r, 1e-30)
-    jacobian = dr.square(t) / dr.maximum(dr.square(r) * dr.dot(w, w_c), 1e-30)
-    on = r > 0
-    return dr.select(on, w_c, w), dr.select(on, jacobian, 1.0)
-
-
-def sample_guide(slot, row, res: int, u1: mi.Float, u2: mi.Point2f):
-    """(ω in the guide frame, upper side; cell): the cell of slot ⌊u1·S⌋ of
-    pmf ``row``'s S = SLOTS_PER_CELL·res² equal-probability slots (one
-    gather: each cell owns as many slots as its quantized pmf, see
-    :func:`guide_tables`); ``u2`` uniform in the cell, then the cosine warp."""
-    slots = SLOTS_PER_CELL * res * res
-    k = dr.minimum(mi.UInt32(u1 * slots), slots - 1)
-    c = take(slot, row * slots + k)
-    u = mi.Point2f((mi.Float(c % res) + u2.x) / res, (mi.Float(c // res) + u2.y) / res)
-    return mi.warp.square_to_cosine_hemisphere(u), c
-
-
-def guide_pdf(pmf, row, res: int, w: mi.Vector3f) -> mi.Float:
-    """Solid-angle density of :func:`sample_guide` at ``w`` (guide frame,
-    upper side; 0 below): pmf · res² · cos θ / π."""
-    cell = square_cell(mi.warp.cosine_hemisphere_to_square(w), res)
-    return dr.select(w.z > 0, take(pmf, row * (res * res) + cell) * (res * res) * w.z
-                     * dr.inv_pi, 0.0)
-
-
-def invert_guide(first, pmf, row, res: int, w: mi.Vector3f):
-    """(u1, u2) that :func:`sample_guide` maps to ``w`` (u1 the middle of its
-    cell's slots)."""
-    u = mi.warp.cosine_hemisphere_to_square(w)
-    c = square_cell(u, res)
-    i = row * (res * res) + c
-    slots = SLOTS_PER_CELL * res * res
-    u1 = (mi.Float(take(first, i)) + 0.5 * take(pmf, i) * slots) / slots
-    return u1, mi.Point2f(u.x * res - mi.Float(c % res), u.y * res - mi.Float(c // res))
-
-
-# ----------------------------- One pass ---------------------------------
-
-
-def launch_pass(scene, integrator, sensor, spp: int, seed, guide, records):
-    """One pass of ``integrator``, a function of its arguments alone: (the
-    image, the arrays of the training ``records`` after the pass scattered
-    into them, or None where it records nothing). What it reads (``guide``,
-    :meth:`Guide.device`'s arrays, or None) and writes are arguments, so
-    Dr.Jit can freeze it and a replay launches the recorded kernels with
-    another guide and seed (validation/run/replays.py)."""
-    integrator._guide = guide
-    if records is not None:
-        integrator._records.hold(records)
-    image = IlluminationEstimator.render(integrator, scene, sensor, seed, spp)
-    # (the sampler's state now depends on the whole pass: left so, a
-    # recording would evaluate it, a second kernel 0.6x the pass's, as
-    # mi.render's own re-seeding says)
-    sensor = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
-    sensor.sampler().seed(0, 1)
-    return image, (None if records is None else integrator._records.arrays())
-
+from .spatial import (FAR, GRID, anchor_of, from_anchor, from_guide, grid_of,  # noqa: F401
+                      guide_frame, on_plane, to_anchor, to_guide, voxel_of)
+from .tables import guide_pdf, invert_guide, sample_guide, take  # noqa: F401
+from .trainer import PASSES, PAYS_BELOW, Trainer, launch_pass
 
 # ------------------------------ Plugin ----------------------------------
 
@@ -168,12 +54,15 @@ class GuidedPathIntegrator(IlluminationEstimator):
          bsdf_fraction)·s. (Default: 0.5)
      * - train_fraction
        - |float|
-       - Share of each render's samples per pixel spent learning, in passes
-         of 1, 2, 4, … spp (in [0, 1)). (Default: 0.125)
+       - Share of each render's samples per pixel spent learning, in
+         iterations that double (in [0, 1)). Not given: iterations of 1, 2,
+         4, … spp while the rest of the budget could still draw one twice as
+         long (Müller et al.'s rule: the share grows with the budget, a
+         third to a half of the samples). (Default: not given)
      * - train_passes
        - |int|
-       - Training passes at most (each traces the whole kernel once more;
-         0: no learning). (Default: 2)
+       - Training iterations at most (each traces the whole kernel once
+         more; 0: no learning). (Default: 16)
      * - spatial_threshold
        - |float|
        - A node of the spatial tree splits while more than this many times
@@ -207,8 +96,10 @@ class GuidedPathIntegrator(IlluminationEstimator):
          (Default: 0.8)
      * - combine_passes
        - |bool|
-       - Average the training passes' images into the result, each weighted
-         by its spp (|false|: the result is the last pass alone). (Default: |true|)
+       - Combine the training iterations' images with the last pass's, each
+         weighted by its spp over its relative variance per sample (one
+         number per image; |false|: the result is the last pass alone).
+         (Default: |true|)
      * - parallax
        - |bool|
        - Learn and draw each leaf's density as seen from an anchor (the
@@ -238,34 +129,33 @@ class GuidedPathIntegrator(IlluminationEstimator):
     that the continuation hits directly on emitters, which the learned
     distribution leaves to the BSDF's sample and NEE.
 
-    **Learning.** Each call of ``render`` learns afresh, in at most
-    ``train_passes`` training passes of doubling spp (``train_fraction`` of
-    the samples), each drawn with what the passes before it learned. Every
-    path vertex records its
-    voxel (of a 32³ grid over the scene's bounds), where its continuation
-    hit and L_i along it: the radiance the path gathered after it, less the
-    emission the continuation hit (next-event estimation has that), over the
-    throughput. Its cell is that of the direction to the point hit from its
-    anchor (``parallax``), and the leaf learns the distance of its light
-    from the anchors (a harmonic mean weighted by L_i, so the nearest bright
-    light sets it). From the pooled records a binary tree splits the grid while
-    a node holds more than ``spatial_threshold``·√R of them; each leaf's pmf is
-    its cells' mean L_i, so the density is ∝ indirect L_i cos θ, with the
-    means taken over a quadtree that refines where light concentrates (cells
-    above ``directional_threshold`` of the leaf's light) and stays coarse
-    where records are few. Where nothing arrives indirectly the first pass
+    **Learning** (a :class:`.trainer.Trainer` per render). Each call of
+    ``render`` learns afresh, in iterations of doubling spp, each drawn with
+    what the iterations before it learned (the first with the BSDF alone).
+    Every path vertex of an iteration records its voxel (of a 32³ grid over
+    the scene's bounds), where its continuation hit and L_i along it: the
+    radiance the path gathered after it, less the emission the
+    continuation hit (next-event estimation has that), over the throughput.
+    Its cell is that of the direction to the point hit from its anchor
+    (``parallax``), and the leaf learns the distance of its light from the
+    anchors (a harmonic mean weighted by L_i, so the nearest bright light
+    sets it). After every iteration, from the records of all so far, a
+    binary tree splits the grid while a node holds more than
+    ``spatial_threshold``·√R of them; each leaf's pmf is its cells' mean
+    L_i, so the density is ∝ indirect L_i cos θ, with the means taken over
+    a quadtree that refines where light concentrates (cells above
+    ``directional_threshold`` of the leaf's light) and stays coarse where
+    records are few. Where nothing arrives indirectly the first iteration
     learns nothing and training stops; where what was learned is predicted
-    to leave more than ``max_variance_ratio`` of BSDF sampling's variance of
-    the indirect light (a smooth sky, light mostly direct) it stops too, and
-    the rest of the samples render as ``mis``; so does a render whose guided
-    pass measured that it did not pay on its own paths (the light mostly
-    direct to the camera's first hits, where the indirect light's gain is a
-    small share of a pixel's). Every pass's image is
-    unbiased, whatever density drew it, so the result (``combine_passes``)
-    is their average weighted by spp: the mean of all the render's samples,
-    none of the training samples lost; its wall time includes the learning.
-    Nested in another integrator (``moment``, which calls ``sample`` only)
-    nothing is learned and it renders as ``mis``.
+    to leave more than ``max_variance_ratio`` of BSDF sampling's variance
+    of the indirect light (a smooth sky, light mostly direct) it stops too,
+    and the rest of the samples render as ``mis``; so does a render whose
+    guided iteration measured that it did not pay on its own paths. Every
+    iteration's image is unbiased, whatever density drew it, so the result
+    (``combine_passes``) weighs them all by inverse variance, none of the
+    training samples lost; its wall time includes the learning. Nested in
+    another integrator (``moment``, which calls ``sample`` only) nothing is
+    learned and it renders as ``mis``.
 
     Russian roulette starts at ``rr_depth`` as ``path``'s, and reads what
     ``roulette`` says.
@@ -276,7 +166,7 @@ class GuidedPathIntegrator(IlluminationEstimator):
 
             <integrator type="guided_path">
                 <integer name="max_depth" value="8"/>
-                <float name="train_fraction" value="0.125"/>
+                <integer name="train_passes" value="8"/>
             </integrator>
     """
 
@@ -288,7 +178,7 @@ class GuidedPathIntegrator(IlluminationEstimator):
     listing_order = 55
     use_nee = True
     use_mis = True
-    records_paths = False                      # (True during training passes)
+    records_paths = False                      # (True during a pass that records)
     learns = True                              # (the learning stage measures it)
     freezable = False                          # (it learns in Python between passes)
     freezes_passes = True                      # (... each pass is launch_pass)
@@ -303,7 +193,9 @@ class GuidedPathIntegrator(IlluminationEstimator):
     def __init__(self, props: mi.Properties):
         super().__init__(props)
         self.bsdf_fraction = float(props.get("bsdf_fraction", 0.5))
-        self.train_fraction = float(props.get("train_fraction", TRAIN_FRACTION))
+        # (None: a share of the budget that grows with it, trainer.budget_passes)
+        self.train_fraction = (float(props["train_fraction"])
+                               if "train_fraction" in props else None)
         self.train_passes = props.get("train_passes", PASSES)
         self.spatial_threshold = float(props.get("spatial_threshold", 20.0))
         self.directional_res = int(props.get("directional_res", 32))
@@ -312,10 +204,22 @@ class GuidedPathIntegrator(IlluminationEstimator):
         self.parallax = bool(props.get("parallax", True))
         self.roulette = str(props.get("roulette", "unguided"))
         self.max_variance_ratio = float(props.get("max_variance_ratio", PAYS_BELOW))
+        self._check_properties()
+        self._guide = None                  # what the pass being traced samples from
+        self._records = None                # ... and records into
+        self._delta_lights = False          # (the scene's emitters are all delta lights)
+        #: The last render's learning: per training iteration its spp, the
+        #: records learned from so far, the tree's leaves, those that
+        #: learned, their mean BSDF share α, the predicted and measured
+        #: variance ratios and the weight of its image in the result.
+        self.training: list[dict] = []
+
+    def _check_properties(self) -> None:
+        """Raise ValueError naming the first property out of its range."""
         if not 0 < self.bsdf_fraction <= 1:
             raise ValueError(f"bsdf_fraction = {self.bsdf_fraction} is invalid: it must lie "
                              "in (0, 1] (the BSDF's share keeps the mixture unbiased)")
-        if not 0 <= self.train_fraction < 1:
+        if self.train_fraction is not None and not 0 <= self.train_fraction < 1:
             raise ValueError(f"train_fraction = {self.train_fraction} is invalid: use a "
                              "share of the samples in [0, 1) (0: no learning, as mis)")
         if isinstance(self.train_passes, bool) or not isinstance(self.train_passes, int) \
@@ -338,13 +242,6 @@ class GuidedPathIntegrator(IlluminationEstimator):
         if res < 2 or res & (res - 1):
             raise ValueError(f"directional_res = {res} is invalid: use a power of 2 "
                              "(the cells are found by bisection), e.g. 8")
-        self._guide = None                  # device arrays of the current guide
-        self._records = None
-        self._images = []                   # (during a render: its training images)
-        #: The last render's learning: per training pass its spp, the records
-        #: learned from so far, the tree's leaves, those that learned and
-        #: their mean BSDF share α.
-        self.training: list[dict] = []
 
     # ---------------------------- Render ---------------------------------
 
@@ -354,175 +251,62 @@ class GuidedPathIntegrator(IlluminationEstimator):
         sensor_ = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
         spp = spp or sensor_.sampler().sample_count()
         self.check_scene(scene)
-        self._guide, self.training = None, []
-        self._grid = grid_of(scene.bbox())
-        self._far = FAR * max(GRID / float(k) for k in self._grid[1])   # (× the grid's size)
-        pixels = int(dr.prod(sensor_.film().crop_size()))
-        depth = int(min(self.max_depth, TRAIN_DEPTH))
-        tally = Tally(self.directional_res)   # the records of every pass so far
-        self._images = []                   # (spp, image) of every training render
-        unguided = PixelMoments()           # the pixels' samples drawn without a guide
+        grid = grid_of(scene.bbox())
+        far = FAR * max(GRID / float(k) for k in grid[1])     # (× the grid's size)
+        self._grid = grid                   # (read by the kernels as they are traced)
+        self._delta_lights = all(mi.has_flag(e.flags(), mi.EmitterFlags.Delta)
+                                 for e in scene.emitters())
+        trainer = Trainer(self, scene, sensor, seed, spp, grid, far)
+        self.training = trainer.log
         try:
-            for i, n in enumerate(training_passes(spp, self.train_fraction,
-                                                  self.train_passes)):
-                drawn = unguided if self._guide is None else PixelMoments()
-                measured, paid = self._train(scene, sensor, pass_seed(seed, i), n, pixels,
-                                             depth, tally, drawn, unguided)
-                entry = {"spp": n, "records": tally.records, "leaves": None,
-                         "trained_leaves": None, "bsdf_share": None, "variance_ratio": None,
-                         "measured_ratio": measured}
-                self.training.append(entry)
-                if not paid:
-                    # (what it would learn now is not learned: nothing reads it)
-                    self._guide = None
+            # Iterations of doubling spp, each drawn with what the ones
+            # before it taught; the tree and densities rebuilt after each
+            for n in trainer.schedule():
+                if not trainer.iterate(n):
+                    trainer.stop()          # (what it would teach now is not learned)
                     break
-                guide = Guide.learn(tally, self.spatial_threshold, self.directional_threshold)
-                ratio = guide.variance_ratio(self.bsdf_fraction)
-                entry.update(leaves=guide.leaves, trained_leaves=guide.trained_leaves,
-                             bsdf_share=guide.bsdf_share(self.bsdf_fraction),
-                             variance_ratio=ratio)
-                if not guide.trained_leaves:
-                    break           # (nothing arrives indirectly: the rest renders as mis)
-                # (a guide that cuts little of the variance costs more than it
-                # buys: sky_sphere and probe_spheres predict 0.86-0.98 and
-                # render 1.3-2.4x path's time for no lower error)
-                if not ratio <= self.max_variance_ratio:
-                    self._guide = None
-                    break
-                self._guide = guide.device(self.bsdf_fraction)
-            rest = spp - sum(t["spp"] for t in self.training)
-            image = self._launch(scene, sensor, seed, rest, develop, evaluate)
-            if not (develop and self.combine_passes and self._images):
-                return image                # (an undeveloped film holds the last pass)
-            # ------------------ Combine the passes ------------------
-            # Σ n_i·image_i / spp: unbiased, as each pass is. Against the last
-            # pass alone (a share f of the spp trained, variances v0 before
-            # learning and v1 after) it is better unless v0 > v1·(2−f)/(1−f),
-            # 2.1× at f = ⅛; the learned density cut variance by 1.9× at most
-            # (docs/measurements.md, 2026-12-03).
-            # (the weights opaque: as literals, every new spp compiled a
-            # kernel, and a timed render that compiles is rendered again)
-            def weight(n):
-                return dr.opaque(mi.Float, n / spp)
-            total = image * weight(rest)
-            for n, im in self._images:
-                total += im * weight(n)
-            return total
+                if not trainer.learn():
+                    break                   # (the rest renders as mis)
+            # The rest of the budget with the last density, every image
+            # weighed by its inverse variance
+            return trainer.render_rest(develop, evaluate)
         finally:
             # (a wrapper calling sample() alone later renders as mis, not
             # with this scene's guide)
             self._records, self.records_paths, self._guide = None, False, None
-            self._images = []
 
-    def _train(self, scene, sensor, seed, spp, pixels, depth, tally, moments, unguided):
-        """One training pass of ``spp`` (in pieces of at most MAX_RECORDS
-        vertices), sampling with the guide learned so far; its pixels'
-        moments are added to ``moments`` (:class:`PixelMoments`; for a pass
-        drawn without a guide, ``unguided`` itself), its vertices' records
-        (:meth:`Records.learned`) to ``tally`` unless the pass did not pay.
-        Every record estimates L_i whatever density drew it, so the
-        passes' records are pooled. Returns (the measured share of the
-        unguided pass's relative variance, NaN where not measured; whether
-        the pass paid)."""
-        pieces = max(1, -(-pixels * spp * depth // MAX_RECORDS))
-        sizes = [n for n in (spp // pieces + (k < spp % pieces) for k in range(pieces)) if n]
-        measured, paid = float("nan"), True
-        for k, n in enumerate(sizes):
-            self._records, self.records_paths = Records(pixels * n, depth), True
-            self._images.append(
-                (n, self._launch(scene, sensor, pass_seed(seed, 1000 + k), n, True, True)))
-            moments.add(self._records.pixel_moments(pixels))
-            if k == len(sizes) - 1 and moments is not unguided:
-                # (the guide that drew this pass did not pay on its own
-                # paths, and they found no light the unguided ones missed:
-                # the Cornell box at 128² × 24-96 spp measured 0.84-1.02 and
-                # guided at 0.6-0.8× path's efficiency; NaN, which pays, in
-                # scalar variants)
-                measured, means = measured_ratios(unguided, moments)
-                paid = not (measured > self.max_variance_ratio and means <= UNSEEN_ABOVE)
-                if not paid:
-                    break
-            tally.add(*self._records.learned(self._grid, self.directional_res, self.parallax))
-        self.records_paths = False
-        return measured, paid
-
-    def _launch(self, scene, sensor, seed, spp, develop, evaluate):
-        """One pass: Mitsuba's render, or :attr:`frozen_pass` replaying it
-        (a developed film only)."""
-        if self.frozen_pass is None or not develop:
-            return super().render(scene, sensor, seed, spp, develop, evaluate)
-        guide, records = self._guide, self._records
+    def launch(self, scene, sensor, seed, spp, develop, evaluate, guide, records):
+        """One pass of ``spp`` drawn with ``guide`` (device arrays; None: as
+        mis) recording into ``records`` (None: nothing): Mitsuba's render,
+        or :attr:`frozen_pass` replaying it (a developed film only)."""
+        self._guide, self._records, self.records_paths = guide, records, records is not None
         try:
+            if self.frozen_pass is None or not develop:
+                return super().render(scene, sensor, seed, spp, develop, evaluate)
             # (an opaque seed: one recording per spp, not one per seed)
             image, arrays = self.frozen_pass(
                 scene, self, sensor, spp, dr.opaque(mi.UInt32, seed), guide,
-                records.arrays() if self.records_paths else None)
+                records.arrays() if records is not None else None)
+            if arrays is not None:
+                records.hold(arrays)
+            return image
         finally:
             self._guide, self._records = guide, records    # (not the recording's)
-        if arrays is not None:
-            records.hold(arrays)
-        return image
+            self.records_paths = False
 
     # ------------------------- Training records ---------------------------
 
     def path_index(self, ray):
-        if dr.is_jit_v(mi.Float):
-            return dr.arange(mi.UInt32, dr.width(ray))
-        return next(self._records.lanes_taken)   # (scalar: one path per call)
+        return self._records.lane(ray)
 
     def record_vertex(self, lane, depth, si, wo_world, pdf, delta, β, L, active):
-        rec = self._records
-        # one to the other side of the guide frame is not learned
-        g = guide_frame(si).n
-        voxel = voxel_of(si.p, self._grid)
-        # (until the continuation hits something: far along it)
-        far = si.p + wo_world * self._far
-        # (no `~` on masks: in scalar variants they are Python bools)
-        keep = dr.select(delta, False, active & (depth < rec.depth) & (pdf > 0)
-                         & (dr.dot(g, wo_world) > 0))
-        if not dr.is_jit_v(mi.Float):
-            if keep:
-                rec.rows[(lane, depth)] = [voxel, dr.mean(β), dr.mean(L), dr.mean(L),
-                                           mi.Point3f(si.p), mi.Point3f(far), mi.Vector3f(g)]
-            return
-        i = lane * rec.depth + depth
-        dr.scatter(rec.voxel, voxel + 1, i, keep)
-        dr.scatter(rec.beta, dr.mean(β), i, keep)
-        dr.scatter(rec.L, dr.mean(L), i, keep)
-        dr.scatter(rec.hit, dr.mean(L), i, keep)       # (until an emission is hit)
-        for k in range(3):
-            dr.scatter(rec.x[k], si.p[k], i, keep)
-            dr.scatter(rec.y[k], far[k], i, keep)
-            dr.scatter(rec.g[k], g[k], i, keep)
+        self._records.vertex(lane, depth, si, wo_world, pdf, delta, β, L, active)
 
     def record_emission(self, lane, depth, si, L, active):
-        # Emission the continuation hit is direct light, which next-event
-        # estimation samples too (exactly, under an importance-sampled map):
-        # the density learns what arrives indirectly, so that q does not take
-        # the emitter sample's MIS weight where it samples best; the direct
-        # part sets the BSDF's share of the mixture (mixture_share).
-        # Where the continuation hit a surface, that point is where the
-        # vertex's light came from (parallax).
-        rec = self._records
-        if not dr.is_jit_v(mi.Float):
-            row = rec.rows.get((lane, depth - 1)) if depth >= 1 else None
-            if active and row is not None:
-                row[3] = dr.mean(L)
-                if si.is_valid():
-                    row[5] = mi.Point3f(si.p)
-            return
-        i = lane * rec.depth + depth - 1
-        here = active & (depth >= 1) & (depth <= rec.depth)
-        dr.scatter(rec.hit, dr.mean(L), i, here)
-        for k in range(3):
-            dr.scatter(rec.y[k], si.p[k], i, here & si.is_valid())
+        self._records.emission(lane, depth, si, L, active)
 
     def record_path(self, lane, L):
-        rec = self._records
-        if not dr.is_jit_v(mi.Float):
-            rec.path_L[lane] = dr.mean(L)
-            return
-        dr.scatter(rec.path, dr.mean(L), lane)
+        self._records.path_radiance(lane, L)
 
     # ------------------------- Sample the next direction -------------------
 
@@ -572,14 +356,17 @@ class GuidedPathIntegrator(IlluminationEstimator):
         # exactly the paths that carried the light there; the BSDF's draws
         # keep their own weight. Only the last step's: carried on (∏ over
         # the path), paths ran on past the patch for 1.3× the time
-        # (docs/measurements.md, 2026-12-06).
+        # (docs/measurements.md#2026-12-06-guided-path-densities-seen-anchors).
         if self._guide is None or self.roulette == "throughput":
             return mi.Float(1)
         p_bsdf = bsdf.pdf(ctx, si, wo)
         return dr.select((pdf > p_bsdf) & (p_bsdf > 0), pdf / p_bsdf, 1.0)
 
     def continuation_pdf(self, si, bsdf, wo_world, bsdf_pdf):
-        if self._guide is None:
+        # (where every emitter is a delta light an emitter sample's MIS
+        # weight is 1, whatever this density: the learned one, two lookups
+        # per vertex, cost 0.12× path's time per sample on sunlit_room_hole)
+        if self._guide is None or self._delta_lights:
             return bsdf_pdf
         alpha, row = self.mixture(si, bsdf)
         return alpha * bsdf_pdf + (1 - alpha) * self.guide_density(si, row, wo_world)
