@@ -1,6 +1,6 @@
 """guided_path against `path` at equal wall time, training included, on
-sunlit_room under its hole at the display film (256²), at renders of about
-``--seconds`` each (1, 10, 60 by default).
+sunlit_room under its hole (or ``--scene``) at the display film (256²), at
+renders of about ``--seconds`` each (1, 10, 60 by default).
 
 Each estimator's spp for a budget comes from its own timed render at a
 small spp (t = a + b·spp, fitted from two; guided_path's training share
@@ -58,11 +58,14 @@ def main(argv=None) -> None:
     parser.add_argument("--seconds", type=float, nargs="+", default=[1.0, 10.0, 60.0])
     parser.add_argument("--pairs", type=int, nargs="+", default=[3, 2, 1])
     parser.add_argument("--res", type=int, default=256)
+    parser.add_argument("--scene", default=None,
+                        help="an XML scene taking -D res (default: sunlit_room under its hole)")
     parser.add_argument("-p", dest="params", action="append", default=[],
                         help="guided_path property, key=value (repeatable)")
     args = parser.parse_args(argv)
     renders.set_variant("llvm_ad_rgb")
-    scene = renders.load_scene(scenes.path("sunlit_room"), res=args.res, gap="hole", sun=500)
+    scene = (renders.load_scene(args.scene, res=args.res) if args.scene else
+             renders.load_scene(scenes.path("sunlit_room"), res=args.res, gap="hole", sun=500))
     params = {k: ast.literal_eval(v) for k, v in (p.split("=", 1) for p in args.params)}
     made = {"path": renders.make_integrator("path", {}),
             "guided_path": renders.make_integrator("guided_path", params)}
