@@ -591,17 +591,22 @@ TWIN = textwrap.dedent('''
 @pytest.mark.slow
 def test_the_suite_passes_it_and_fails_a_wrong_learned_pdf(llvm, tmp_path):
     """On the scene made for it (24², the user-scene ladder up to 256 spp,
-    where every render learns), guided_path passes every unbiasedness check
-    and its twin with the learned pdf 25 % high in the weight fails."""
-    right = compare(ROOM, "guided_path", out_dir=tmp_path / "right",
-                    cache_dir=tmp_path / "cache")
-    assert_unbiased(right)
+    where every render learns), the twin with the learned pdf 25 % high in
+    the weight fails, and guided_path passes every unbiasedness check. The
+    twin first: a correct estimator left inconclusive ends the test as an
+    xfail (mcillum.testing), and the twin's fail must still be read. Trained
+    across the budget (issue 65), guided_path is inconclusive here on seed
+    set 0: its image mean -1.2 % ± 1.1 % reaches past ε = 2 %, with no bias
+    the fresh renders confirm (300 and 150 renders read z = 0.74 and 0.51)."""
     plugin = tmp_path / "twin.py"
     plugin.write_text(TWIN)
     wrong = compare(ROOM, "guided_path_pdf_high", plugins=[plugin], out_dir=tmp_path / "wrong",
                     cache_dir=tmp_path / "cache")
     with pytest.raises(AssertionError, match="fail"):
         assert_unbiased(wrong)
+    right = compare(ROOM, "guided_path", out_dir=tmp_path / "right",
+                    cache_dir=tmp_path / "cache")
+    assert_unbiased(right)
 
 
 # ----------------------------- The learning stage -----------------------------
