@@ -10,15 +10,11 @@ import numpy as np
 
 from mcillum.integrators.core.registry import REFERENCE
 
-from ..results import SceneResult
+from ..results import SceneResult, seconds_text
 from . import charts
 from .parts import fmt, swatch
 
 plt = charts.plt            # (pyplot, after charts chose the headless backend)
-
-
-def _seconds(t: float) -> str:
-    return f"{t:.2g} s" if t < 10 else f"{t:.0f} s"
 
 
 def _cell(p) -> str:
@@ -46,31 +42,31 @@ def axis_section(scene: SceneResult, colours: dict) -> str:
     leaders = []
     for b in a.rankings:
         first = [p.estimator for p in b.ranking if p.rank == 1]
-        leaders.append(f"<li><b>{_seconds(b.seconds)}</b>: "
+        leaders.append(f"<li><b>{seconds_text(b.seconds)}</b>: "
                        f"{html.escape(first[0])}"
                        + (f" <span class=desc>(tied: {html.escape(', '.join(first[1:]))})</span>"
                           if len(first) > 1 else "") + "</li>")
     crossings = "".join(f"<li>{html.escape(c.text)}</li>" for c in a.crossings) or \
         "<li>no estimator's efficiency crosses path's between these budgets</li>"
     models = "".join(
-        f"<li>{html.escape(n)}: c/(t − t₀) fitted up to {_seconds(m.fitted_to)}, predicted "
-        f"{fmt(m.predicted)} at {_seconds(m.checked_at)} where the measured point agrees; "
+        f"<li>{html.escape(n)}: c/(t − t₀) fitted up to {seconds_text(m.fitted_to)}, predicted "
+        f"{fmt(m.predicted)} at {seconds_text(m.checked_at)} where the measured point agrees; "
         "drawn from it above</li>" for n, m in a.models.items())
     head = "".join(f"<th>{swatch(n, colours)}</th>" for n in names)
-    rows = "".join(f"<tr><td>{_seconds(b)}</td>" + "".join(_cell(at[n].get(b)) for n in names)
+    rows = "".join(f"<tr><td>{seconds_text(b)}</td>" + "".join(_cell(at[n].get(b)) for n in names)
                    + "</tr>" for b in a.budgets)
     # (the crossings and leaders are above; summary.md has them as notes)
     said = {c.text for c in a.crossings}
     notes = "".join(f"<li>{html.escape(n)}</li>" for n in a.notes
                     if n not in said and not n.startswith("most efficient at each budget"))
     return f"""
-<h3 id="{scene.name}--budgets">Budgets from {_seconds(a.budgets[0])} to {_seconds(a.budgets[-1])}
+<h3 id="{scene.name}--budgets">Budgets from {seconds_text(a.budgets[0])} to {seconds_text(a.budgets[-1])}
 per render at {a.res}²</h3>
 <p>Each estimator rendered K = {a.renders} times (more below a second) at each budget,
 interleaved; relMSE is that of one render, from the spread of its renders (their per-pixel
 variance over r² + ε: no reference can resolve a minute of <code>path</code>, and the scene's
 unbiasedness tests above check what the spread cannot see). Path, mis and every estimator that
-learns are measured at every budget; another is measured up to {_seconds(_fitted(a))} and at
+learns are measured at every budget; another is measured up to {seconds_text(_fitted(a))} and at
 the budget after, which checks the model relMSE = c/(t − t₀) it is drawn from above (dashed).
 Efficiency is 1/(relMSE·t) at the render's measured time.</p>
 <ul class=notes>{crossings}</ul>

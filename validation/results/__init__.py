@@ -15,7 +15,8 @@ files and back:
 Everything is re-exported here: ``results.load(run_dir)``, ``results.Check``.
 """
 
-from .axis import AxisBudget, AxisCrossing, AxisModel, AxisPoint, BudgetAxis  # noqa: F401
+from .axis import (AxisBudget, AxisCrossing, AxisModel, AxisPoint, BudgetAxis,  # noqa: F401
+                   seconds_text)
 from .cases import (BatchTest, CaseReference, CaseResult, CaseRow, Percentiles,  # noqa: F401
                     SppToMatch, SunSplit, Sweep, SweepRow, TailNumbers)
 from .common import OUTCOMES, Check, ReferenceSummary, having  # noqa: F401

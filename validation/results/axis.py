@@ -11,6 +11,12 @@ from .common import optional
 from .speed import Interval, Placement
 
 
+def seconds_text(t: float) -> str:
+    """A budget as a reader says it: 0.1 s, 4.2 s, 60 s (the axis's notes
+    and its section of the report)."""
+    return f"{t:.2g} s" if t < 10 else f"{t:.0f} s"
+
+
 @dataclass(kw_only=True)
 class AxisPoint:
     """One estimator at one budget: K timed renders (``measured``), or its

@@ -28,8 +28,8 @@ Its stages, in order:
                    an estimator's ratio crosses 1 → ctx.budget_axis.
 
 The renders and their times are kept in the run directory
-(``renders/<scene>/axis.npz``) under a key (scene content, estimators, the
-display plan): a re-run into a finished directory renders nothing, and
+(``renders/<scene>/axis.npz``) under a key (scene content and seed set, as
+``render_key`` holds them; estimators; the display plan): a re-run into a finished directory renders nothing, and
 reports the first run's times.
 """
 
@@ -48,7 +48,7 @@ from mcillum import files
 from mcillum.integrators.core import registry
 
 from ..results import (AxisBudget, AxisCrossing, AxisModel, AxisPoint, BudgetAxis, Interval,
-                       Try, layout)
+                       Try, layout, seconds_text)
 from ..run import load, stacks
 from ..run.stacks import Stack
 from ..stats import axis, costs
@@ -75,11 +75,6 @@ def planned_renders(estimators, display) -> int:
     """The axis's renders if every estimator rendered every budget once (no
     corrections; fewer where a model draws a point): the progress bar's."""
     return len(estimators) * sum(renders_at(t, display.axis_renders) for t in display.axis)
-
-
-def seconds_text(t: float) -> str:
-    """A time as a reader says it: 0.1 s, 4.2 s, 60 s."""
-    return f"{t:.2g} s" if t < 10 else f"{t:.0f} s"
 
 
 # --------------------------------- Renders ---------------------------------------
@@ -217,7 +212,7 @@ def _cache_file(ctx) -> tuple[str, str]:
     sub = ctx.display
     key = hashlib.sha256(json.dumps(
         [sub.render_key, list(sub.integrators), dataclasses.asdict(ctx.plan.display),
-         ctx.run.seed_set, CACHE_VERSION]).encode()).hexdigest()[:24]
+         CACHE_VERSION]).encode()).hexdigest()[:24]
     return layout.kept_renders(ctx.run.out_dir, ctx.id, "axis"), key
 
 
