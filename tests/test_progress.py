@@ -11,6 +11,7 @@ import os
 import re
 import subprocess
 import sys
+import textwrap
 
 import mitsuba as mi
 import pytest
@@ -174,3 +175,32 @@ def test_a_validation_log_shows_progress_without_escapes(tmp_path):
     assert rerun.returncode == 0 and b"\x1b" not in rerun.stdout
     assert not any(map(LINE.match, rerun.stdout.decode().splitlines())), rerun.stdout.decode()
     assert b"PASSED" in rerun.stdout
+
+
+def test_a_python_plugin_that_logs_while_loading_under_the_run_log_does_not_deadlock():
+    """Under the run's log (a Python appender), a scalar variant loads a
+    scene whose Python integrator logs from its constructor (Mitsuba warns
+    that Python plugins are slow in scalar_*) while a sphere logs its own
+    warning. Loaded on Mitsuba's loader threads, this hung for good (CI's
+    default run timed out on it); in a subprocess, so a regression fails
+    rather than hangs the suite."""
+    script = textwrap.dedent(f"""
+        import io, mcillum
+        from mcillum.validation.run import mitsuba_log, renders
+        from mcillum.validation.plan import scenes
+        renders.set_variant("scalar_rgb")
+        path = scenes.index()["edge_light_size"].path
+        out = io.StringIO()
+        with mitsuba_log.plain(out):
+            for _ in range(5):
+                renders.load_scene(path, res=2, radius=0)
+        assert "slow" in out.getvalue() or "performance" in out.getvalue(), out.getvalue()
+        assert "non-uniform scaling" in out.getvalue(), out.getvalue()
+        print("loaded")
+    """)
+    try:
+        done = subprocess.run([sys.executable, "-c", script], capture_output=True,
+                              text=True, timeout=60)
+    except subprocess.TimeoutExpired:
+        pytest.fail("loading a scene under the run's log deadlocked (see renders.load_resolved)")
+    assert done.returncode == 0 and "loaded" in done.stdout, done.stderr[-2000:]

@@ -139,16 +139,16 @@ def load_resolved(path: str | os.PathLike, resolved: dict,
     """Load a scene with ``$``-parameters already passed through
     :func:`resolve_defines` (so the envmap is not read and checked again);
     with ``film`` = (width, height), at that film size (a user's scene at the
-    reduced film of the statistics: plan/scene_files.py)."""
+    reduced film of the statistics: plan/scene_files.py). On this thread: on
+    loader threads, a Python plugin that logs deadlocks the run's log appender."""
     path = os.fspath(path)
     if film is None:
-        return mi.load_file(path, **resolved)
+        return mi.load_file(path, parallel=False, **resolved)
     text, folders = scene_files.with_film(path, film, resolved)
-    # (a $-parameter that set the film size is used no more: Mitsuba
-    # refuses unused ones)
+    # (a $-parameter that set the film size is used no more: Mitsuba refuses it)
     used = {k: v for k, v in resolved.items() if re.search(rf"\${k}\b", text)}
     with _resolving(folders):
-        return mi.load_string(text, **used)
+        return mi.load_string(text, parallel=False, **used)
 
 
 def environment_texels(scene: mi.Scene) -> np.ndarray | None:
@@ -194,7 +194,7 @@ def make_integrator(name: str, params: dict | None = None) -> mi.Integrator:
     params = params or {}
     shown = " ".join(f"-p {k}={v}" for k, v in params.items())
     try:
-        integrator = mi.load_dict({"type": name, **params})
+        integrator = mi.load_dict({"type": name, **params}, parallel=False)
     except Exception as err:  # noqa: BLE001  (Mitsuba's loader raises plain errors)
         text = message(err, context=False)
         if plugin_not_found(text):
