@@ -184,7 +184,7 @@ def test_a_python_plugin_that_logs_while_loading_under_the_run_log_does_not_dead
     warning. Loaded on Mitsuba's loader threads, this hung for good (CI's
     default run timed out on it); in a subprocess, so a regression fails
     rather than hangs the suite."""
-    script = textwrap.dedent(f"""
+    script = textwrap.dedent("""
         import io, mcillum
         from mcillum.validation.run import mitsuba_log, renders
         from mcillum.validation.plan import scenes

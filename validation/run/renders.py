@@ -139,8 +139,8 @@ def load_resolved(path: str | os.PathLike, resolved: dict,
     """Load a scene with ``$``-parameters already passed through
     :func:`resolve_defines` (so the envmap is not read and checked again);
     with ``film`` = (width, height), at that film size (a user's scene at the
-    reduced film of the statistics: plan/scene_files.py). On this thread: on
-    loader threads, a Python plugin that logs deadlocks the run's log appender."""
+    reduced film of the statistics: plan/scene_files.py). Loaded on this
+    thread: a Python plugin that logs on a loader thread deadlocks a Python log."""
     path = os.fspath(path)
     if film is None:
         return mi.load_file(path, parallel=False, **resolved)
